@@ -1,0 +1,187 @@
+"""Contract 1: the CSV log format shared by measured data and simulator recordings.
+
+A log is a CSV file with a header row, optionally preceded by ``# key: value`` metadata lines.
+Columns and units (see ../shared/DESIGN.md):
+
+- ``t`` [s], ``wx wy wz`` [deg/s], ``ax ay az`` [g]: required;
+- ``temp`` [degC], ``session`` [switch-on index], ``ref_wx ref_wy ref_wz`` [deg/s]: optional;
+- any other numeric column: an extra covariate.
+
+Why a hand-written reader rather than ``numpy.genfromtxt``: a bad file must be rejected with the
+line and the column named, and rows holding NaN/Inf must be reported and skipped, never silently
+turned into numbers an estimator would believe.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gyrocal.errors import LogFormatError
+
+REQUIRED = ("t", "wx", "wy", "wz", "ax", "ay", "az")
+OPTIONAL = ("temp", "session", "ref_wx", "ref_wy", "ref_wz")
+AXES = ("x", "y", "z")
+
+
+@dataclass
+class LogData:
+    """A log held as one float64 numpy array per column.
+
+    ``columns`` always holds the required columns and ``session`` (zeros when the file had none).
+    ``skipped_rows`` lists the 1-based file line numbers of rows dropped for NaN/Inf values.
+    """
+
+    columns: dict[str, np.ndarray]
+    metadata: dict[str, str] = field(default_factory=dict)
+    skipped_rows: list[int] = field(default_factory=list)
+    source: str = ""
+
+    def __len__(self) -> int:
+        return int(self.columns["t"].shape[0])
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.columns[name]
+
+    def has(self, name: str) -> bool:
+        return name in self.columns
+
+    @property
+    def gyro_dps(self) -> np.ndarray:
+        """Gyro output, shape (N, 3), deg/s."""
+        return np.column_stack([self.columns[f"w{a}"] for a in AXES])
+
+    @property
+    def accel_g(self) -> np.ndarray:
+        """Specific force, shape (N, 3), g."""
+        return np.column_stack([self.columns[f"a{a}"] for a in AXES])
+
+    @property
+    def extra_columns(self) -> list[str]:
+        """Columns beyond the contract's named ones: candidate covariates for the analysis."""
+        known = set(REQUIRED) | set(OPTIONAL)
+        return [c for c in self.columns if c not in known]
+
+    def select(self, mask: np.ndarray) -> LogData:
+        """A new log holding only the rows where ``mask`` is true (metadata kept)."""
+        return LogData(
+            {k: v[mask] for k, v in self.columns.items()},
+            dict(self.metadata),
+            list(self.skipped_rows),
+            self.source,
+        )
+
+
+def _parse_float(text: str, path: str, line: int, column: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise LogFormatError(
+            f"{path}:{line}: column '{column}' holds {text!r}, which is not a number; "
+            "fix the value or remove the row"
+        ) from None
+
+
+def read_log(path: str | Path) -> LogData:
+    """Read a Contract 1 log, rejecting a malformed file and skipping non-finite rows.
+
+    Raises LogFormatError naming the line and the column for: a missing required column, a
+    non-numeric value, a row with the wrong number of fields, or time going backwards within a
+    session. Rows with NaN or Inf are listed in ``skipped_rows`` and left out.
+    """
+    p = Path(path)
+    name = str(p)
+    try:
+        fh = p.open(newline="", encoding="utf-8")
+    except OSError as err:
+        raise LogFormatError(f"{name}: cannot open the log ({err.strerror})") from err
+    metadata: dict[str, str] = {}
+    with fh:
+        lines = iter(enumerate(fh, start=1))
+        header: list[str] | None = None
+        header_line = 0
+        for lineno, raw in lines:
+            text = raw.strip()
+            if not text:
+                continue
+            if text.startswith("#"):
+                body = text[1:].strip()
+                if ":" in body:
+                    key, value = body.split(":", 1)
+                    metadata[key.strip()] = value.strip()
+                continue
+            header = [h.strip() for h in next(csv.reader([text]))]
+            header_line = lineno
+            break
+        if header is None:
+            raise LogFormatError(f"{name}: no header row; the first non-# line must name the columns")
+        missing = [c for c in REQUIRED if c not in header]
+        if missing:
+            raise LogFormatError(
+                f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
+                f"header; a log needs {', '.join(REQUIRED)}"
+            )
+        if len(set(header)) != len(header):
+            raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
+        rows: list[list[float]] = []
+        skipped: list[int] = []
+        width = len(header)
+        for lineno, raw in lines:
+            text = raw.strip()
+            if not text or text.startswith("#"):
+                continue
+            fields = text.split(",")
+            if len(fields) != width:
+                raise LogFormatError(
+                    f"{name}:{lineno}: {len(fields)} fields where the header has {width}; "
+                    "every row needs one value per column"
+                )
+            values = [_parse_float(f, name, lineno, header[i]) for i, f in enumerate(fields)]
+            if not all(math.isfinite(v) for v in values):
+                skipped.append(lineno)
+                continue
+            rows.append(values)
+    table = np.asarray(rows, dtype=np.float64).reshape(-1, width)
+    columns = {h: table[:, i].copy() for i, h in enumerate(header)}
+    if "session" not in columns:
+        columns["session"] = np.zeros(table.shape[0])
+    _check_time_order(columns, name)
+    return LogData(columns, metadata, skipped, name)
+
+
+def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:
+    t, s = columns["t"], columns["session"]
+    same = s[1:] == s[:-1]
+    back = np.flatnonzero(same & (np.diff(t) < 0))
+    if back.size:
+        i = int(back[0]) + 1
+        raise LogFormatError(
+            f"{name}: data row {i + 1}: column 't' goes backwards ({t[i - 1]!r} -> {t[i]!r}) "
+            "within one session; sort the rows or start a new session number"
+        )
+
+
+def write_log(
+    path: str | Path,
+    columns: Mapping[str, np.ndarray],
+    metadata: Mapping[str, str] | None = None,
+    order: Iterable[str] | None = None,
+) -> None:
+    """Write a Contract 1 log. Columns are written in ``order`` (default: contract order first)."""
+    names = list(order) if order is not None else _default_order(columns)
+    data = np.column_stack([np.asarray(columns[c], dtype=np.float64) for c in names])
+    with Path(path).open("w", encoding="utf-8", newline="") as fh:
+        for key, value in (metadata or {}).items():
+            fh.write(f"# {key}: {value}\n")
+        fh.write(",".join(names) + "\n")
+        np.savetxt(fh, data, delimiter=",", fmt="%.10g")
+
+
+def _default_order(columns: Mapping[str, np.ndarray]) -> list[str]:
+    first = [c for c in (*REQUIRED, *OPTIONAL) if c in columns]
+    return first + [c for c in columns if c not in first]
