@@ -1,0 +1,194 @@
+"""Candidate causes: for each word of the Contract 2 vocabulary, the extra design columns it adds.
+
+Every nonlinear choice (a warm-up time constant, a periodic frequency) is made on the training folds
+only, so the held-out test is honest. A candidate that its inputs cannot support (no temperature
+column, a flat temperature, no reference rates) is not offered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gyrocal.analysis.baseline import Problem, lstsq
+from gyrocal.analysis.segments import AXES
+from gyrocal.model.terms import TermSpec
+
+WARMUP_TAUS_S = (5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
+"""Grid of warm-up time constants [s]; the grid is cut at the longest session."""
+RW_PRIOR_S = 0.5
+"""Weight of the random-walk smoothness prior, in seconds of data a knot step is worth."""
+
+
+@dataclass
+class Candidate:
+    """One cause's extra columns: per fold (chosen on training data) and on all data."""
+
+    cause: str
+    folds: list[np.ndarray]  # per fold, (M, p)
+    full: np.ndarray  # (M, p), chosen on all data
+    terms: list[str]  # Contract 3 term names of ``full`` ([] for the random-walk state)
+    info: dict = field(default_factory=dict)  # e.g. frequency_hz, tau_s, knot_s
+    tau_s: float | None = None  # averaging time the test needs (periodic), None = global
+    covariate: str = "t"  # what to plot the residual against
+    n_params: int = 0
+    penalty: np.ndarray | None = None  # (R, p) rows appended as "penalty @ coef = 0" (smoothness)
+
+
+def _terms_design(prob: Problem, names: list[str]) -> np.ndarray:
+    return TermSpec.parse(names).design(prob.cols)
+
+
+def temperature(prob: Problem) -> Candidate | None:
+    """Bias on the temperature level: T and T^2 (seed 004's static inputs)."""
+    if "temp" not in prob.cols or np.std(prob.cols["temp"]) < 0.05:
+        return None
+    names = ["temp", "temp^2"]
+    x = _terms_design(prob, names)
+    return Candidate("temperature", [x] * prob.n_folds, x, names, covariate="temp", n_params=2)
+
+
+def temperature_rate(prob: Problem) -> Candidate | None:
+    """Bias on the temperature rate: dT/dt and T*dT/dt (seed 004's dynamic inputs)."""
+    if "temp" not in prob.cols or np.std(prob.cols.get("dtemp", np.zeros(1))) < 1e-4:
+        return None
+    names = ["dtemp", "temp*dtemp"]
+    x = _terms_design(prob, names)
+    return Candidate("temperature_rate", [x] * prob.n_folds, x, names, covariate="dtemp", n_params=2)
+
+
+def _best_tau(prob: Problem, train: np.ndarray, taus: list[float]) -> float:
+    """The warm-up time constant [s] that best fits the training samples (pooled over axes)."""
+    best, best_sse = taus[0], np.inf
+    for tau in taus:
+        x = np.column_stack([prob.base, np.exp(-prob.cols["t_on"] / tau)])
+        beta, _ = lstsq(x[train], prob.y[train])
+        sse = float(np.sum((prob.y[train] - x[train] @ beta) ** 2))
+        if sse < best_sse:
+            best, best_sse = tau, sse
+    return best
+
+
+def warmup(prob: Problem) -> Candidate | None:
+    """An exponential transient after each switch-on, exp(-t_on / tau)."""
+    t_max = float(np.max(prob.cols["t_on"]))
+    taus = [t for t in WARMUP_TAUS_S if t <= t_max / 2] or [WARMUP_TAUS_S[0]]
+    folds = []
+    for k in range(prob.n_folds):
+        tau = _best_tau(prob, prob.fold != k, taus)
+        folds.append(np.exp(-prob.cols["t_on"] / tau)[:, None])
+    tau = _best_tau(prob, np.ones(prob.n, dtype=bool), taus)
+    name = f"exp(-t_on/{tau:g})"
+    return Candidate("warmup", folds, _terms_design(prob, [name]), [name], {"tau_s": tau},
+                     covariate="t_on", n_params=1)
+
+
+def peak_frequency_hz(prob: Problem, resid: np.ndarray, mask: np.ndarray) -> float:
+    """Frequency [Hz] of the largest spectral peak of the residual (M, 3) on ``mask``.
+
+    The residual is placed on each session's regular time grid with zeros in the gaps (moves,
+    held-out blocks), so the phase of a disturbance that runs on absolute time is kept; the power is
+    summed over axes and sessions. Slow content (< 0.05 Hz) belongs to the other causes.
+    """
+    fs = prob.rate_hz
+    t = prob.cols["t"]
+    grids = []
+    for s in np.unique(prob.usable.session):
+        m = (prob.usable.session == s) & mask
+        if m.sum() < 16:
+            continue
+        i = np.round((t[m] - t[m][0]) * fs).astype(int)
+        g = np.zeros((int(i.max()) + 1, 3))
+        g[i] = resid[m]
+        grids.append(g)
+    if not grids:
+        return float("nan")
+    nfft = 1 << int(np.ceil(np.log2(2 * max(len(g) for g in grids))))
+    power = sum(np.sum(np.abs(np.fft.rfft(g, n=nfft, axis=0)) ** 2, axis=1) for g in grids)
+    f = np.fft.rfftfreq(nfft, 1.0 / fs)
+    band = (f >= 0.05) & (f <= 0.45 * fs)
+    if not band.any():
+        return float("nan")
+    k = int(np.flatnonzero(band)[np.argmax(power[band])])
+    if 0 < k < len(power) - 1:  # parabolic refinement on log power
+        a, b, c = np.log(power[k - 1 : k + 2] + 1e-300)
+        den = a - 2 * b + c
+        shift = 0.5 * (a - c) / den if den != 0 else 0.0
+        return float(f[k] + np.clip(shift, -0.5, 0.5) * (f[1] - f[0]))
+    return float(f[k])
+
+
+def _sincos(prob: Problem, f_hz: float) -> np.ndarray:
+    w = 2 * np.pi * f_hz * prob.cols["t"]
+    return np.column_stack([np.sin(w), np.cos(w)])
+
+
+def periodic(prob: Problem) -> Candidate | None:
+    """A sinusoid at the residual's spectral peak: sin(2 pi F t), cos(2 pi F t)."""
+    folds = []
+    for k in range(prob.n_folds):
+        train = prob.fold != k
+        beta, _ = lstsq(prob.base[train], prob.y[train])
+        f = peak_frequency_hz(prob, prob.y - prob.base @ beta, train)
+        folds.append(_sincos(prob, f) if np.isfinite(f) else np.zeros((prob.n, 2)))
+    beta, _ = lstsq(prob.base, prob.y)
+    f = peak_frequency_hz(prob, prob.y - prob.base @ beta, np.ones(prob.n, dtype=bool))
+    if not np.isfinite(f):
+        return None
+    f = round(f, 4)
+    names = [f"sin({f:g})", f"cos({f:g})"]
+    return Candidate("periodic", folds, _terms_design(prob, names), names, {"frequency_hz": f},
+                     tau_s=min(1.0, 0.25 / f), covariate="phase", n_params=2)
+
+
+def scale_factor(prob: Problem) -> Candidate | None:
+    """An error proportional to the true rate: the reference rates as regressors (scale + cross)."""
+    if not prob.usable.with_reference:
+        return None
+    names = [f"ref_w{a}" for a in AXES]
+    x = _terms_design(prob, names)
+    if np.max(np.abs(x)) == 0:
+        return None
+    return Candidate("scale_factor", [x] * prob.n_folds, x, names, covariate="ref_w", n_params=3)
+
+
+def random_walk(prob: Problem) -> Candidate:
+    """A wandering bias: piecewise-linear in time with one knot per block (a random-walk smoother).
+
+    With knots at the block edges, a held-out block's bias is interpolated from its neighbours,
+    which is what a Kalman smoother of a random-walk state does between measurements.
+    """
+    knot = prob.block_s
+    cols, diffs = [], []
+    t_on, sess = prob.cols["t_on"], prob.usable.session
+    for s in np.unique(sess):
+        m = sess == s
+        for j in range(int(np.ceil(t_on[m].max() / knot)) + 1):
+            c = np.zeros(prob.n)
+            c[m] = np.maximum(0.0, 1.0 - np.abs(t_on[m] - j * knot) / knot)
+            if j > 0:
+                diffs.append((len(cols) - 1, len(cols)))
+            cols.append(c)
+    x = np.column_stack(cols)
+    # smoothness: a knot-to-knot step costs as much as RW_PRIOR_S of samples would; knots with
+    # little data follow their neighbours (interpolation), knots with much data are barely held
+    pen = np.zeros((len(diffs), x.shape[1]))
+    w = np.sqrt(RW_PRIOR_S * prob.rate_hz)
+    for r, (i, j) in enumerate(diffs):
+        pen[r, i], pen[r, j] = -w, w
+    return Candidate("random_walk", [x] * prob.n_folds, x, [], {"knot_s": knot}, covariate="t",
+                     n_params=x.shape[1], penalty=pen)
+
+
+BUILDERS = (temperature, temperature_rate, warmup, periodic, scale_factor, random_walk)
+COVARIATE_CAUSES = ("temperature", "temperature_rate", "warmup")
+
+
+def all_candidates(prob: Problem) -> list[Candidate]:
+    out = []
+    for build in BUILDERS:
+        c = build(prob)
+        if c is not None:
+            out.append(c)
+    return out

@@ -1,0 +1,87 @@
+"""``gyrocal analyze LOG.csv --json OUT.json [--report DIR]`` (Contract 2).
+
+Exits 0 whenever the analysis ran, whatever it found. Progress goes to stderr (the JSON may go to
+stdout with ``--json -``). The extended model spec is written next to the JSON as
+``OUT.terms.yaml`` (or to ``--spec PATH``), ready for ``gyrocal fit --terms-file``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from gyrocal.analysis.engine import analyze
+from gyrocal.analysis.extend import write_spec
+from gyrocal.errors import GyrocalError
+from gyrocal.logformat import read_log
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", help="a Contract 1 log (CSV); see `gyrocal convert` for real datasets")
+    parser.add_argument("--json", metavar="OUT.json", help="write the Contract 2 result here ('-' = stdout)")
+    parser.add_argument("--report", metavar="DIR", help="write report.md and PNG plots into DIR")
+    parser.add_argument("--spec", metavar="PATH", help="where to write the extended model spec (YAML)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated noise (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def _clean(x):
+    """JSON-safe: NaN/Inf become null (strict JSON readers reject NaN)."""
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def main(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"analyze [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    log = read_log(args.log)
+    if log.skipped_rows:
+        say(f"skipped {len(log.skipped_rows)} rows holding NaN/Inf (first at line {log.skipped_rows[0]})")
+    res = analyze(log, progress=say, seed=args.seed)
+    out = _clean(res.result)
+    spec_path = args.spec or (str(Path(args.json).with_suffix(".terms.yaml"))
+                              if args.json and args.json != "-" else None)
+    if spec_path:
+        write_spec(spec_path, out, args.log)
+        out["extended"]["spec_file"] = str(spec_path)
+    if args.report:
+        from gyrocal.analysis.report import write_report  # matplotlib only when asked
+
+        try:
+            write_report(args.report, res, out, args.log)
+        except OSError as err:
+            raise GyrocalError(f"--report {args.report}: cannot write the report ({err})") from err
+        say(f"report written to {args.report}/report.md")
+    text = json.dumps(out, indent=1)
+    if args.json == "-":
+        print(text)
+    elif args.json:
+        Path(args.json).write_text(text + "\n", encoding="utf-8")
+    if not args.json:
+        _summary(out)
+    say(f"done: {len(out['findings'])} finding(s)")
+    return 0
+
+
+def _summary(out: dict) -> None:
+    """A short human summary on stdout when no JSON file was asked for."""
+    if not out["findings"]:
+        print("nothing significant beyond gravity-dependent drift and white noise")
+    for f in out["findings"]:
+        print(f"{f['cause']}: axes {','.join(f['axes'])}, explains {f['explained_fraction']:.1%} "
+              f"(p={f['p_value']:.2g})")
+    g = out["gain"]
+    print(f"gain (tau_s={out['tau_s']:g}): " + ", ".join(f"{a}={g[a]:.2f}" for a in g if g[a] is not None))

@@ -1,0 +1,140 @@
+"""A seeded generator of logs that hide one or more drift effects, for tests and benchmarks.
+
+The seed chooses the cause (unless given), the affected axes and the size, at sizes a careful
+engineer could detect against the noise. It keeps causes distinguishable, as issue 5 asks:
+temperature cycles (it does not only rise with time) when the cause is temperature or its rate;
+the temperature is flat or absent when the cause is warm-up; reference rates are written only when
+the cause is a scale factor. ``inject`` adds an effect to a real log instead, so real noise is used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gyrocal.logformat import write_log
+from gyrocal.sim.schedule import tumble
+from gyrocal.sim.truth import Effects, SessionStream, Thermal, TruthModel
+
+CAUSES = ("temperature", "temperature_rate", "warmup", "random_walk", "periodic", "scale_factor")
+AXES = ("x", "y", "z")
+
+
+@dataclass
+class Hidden:
+    """What a generated log hides: causes, affected axes, and the truth effects used."""
+
+    causes: list[str]
+    axes: dict[str, list[str]] = field(default_factory=dict)
+    effects: Effects = field(default_factory=Effects)
+    thermal: Thermal = field(default_factory=Thermal)
+    size: dict[str, float] = field(default_factory=dict)  # a scalar size per cause (for ranking)
+
+
+def _axes(rng: np.random.Generator) -> np.ndarray:
+    mask = np.zeros(3)
+    mask[rng.choice(3, size=int(rng.integers(1, 4)), replace=False)] = 1.0
+    return mask
+
+
+def _signs(rng: np.random.Generator) -> np.ndarray:
+    return rng.choice([-1.0, 1.0], 3)
+
+
+def _add(h: Hidden, cause: str, rng: np.random.Generator, session_s: float, scale: float) -> None:
+    """Put one cause into h.effects / h.thermal; ``scale`` multiplies the drawn size."""
+    e, m = h.effects, _axes(rng)
+    u = rng.uniform(1.0, 2.0) * scale
+    if cause in ("temperature", "temperature_rate"):
+        h.thermal = Thermal(rise_c=rng.uniform(0.0, 1.0), tau_s=120.0, cycle_c=rng.uniform(3.0, 6.0),
+                            cycle_period_s=session_s / rng.integers(1, 3))
+    if cause == "temperature":
+        e.temp_dps_per_c = m * _signs(rng) * 1.5e-3 * u
+        size = 1.5e-3 * u * h.thermal.cycle_c / np.sqrt(2)
+    elif cause == "temperature_rate":
+        w = 2 * np.pi / h.thermal.cycle_period_s
+        e.temp_rate_dps_per_cps = m * _signs(rng) * 5e-3 * u / (h.thermal.cycle_c * w)
+        size = 5e-3 * u / np.sqrt(2)
+    elif cause == "warmup":
+        e.warmup_dps = m * _signs(rng) * 0.02 * u
+        e.warmup_tau_s = float(rng.uniform(20.0, 50.0))
+        size = 0.02 * u * np.sqrt(e.warmup_tau_s / (2 * session_s))
+    elif cause == "random_walk":
+        e.random_walk_dps_per_sqrt_s = m * 1e-3 * u
+        size = 1e-3 * u * np.sqrt(session_s / 6)
+    elif cause == "periodic":
+        e.periodic_dps = m * 5e-3 * u
+        e.periodic_hz = float(round(rng.uniform(0.3, 3.0), 3))
+        size = 5e-3 * u / np.sqrt(2)
+    else:  # scale_factor
+        m = np.ones(3)
+        e.scale_factor = m * _signs(rng) * 1e-3 * u
+        size = 1e-3 * u * 60.0
+    h.axes[cause] = [a for a, k in zip(AXES, m, strict=True) if k]
+    h.size[cause] = float(size)
+
+
+def generate(
+    seed: int, causes: Sequence[str] | None = None, n_sessions: int = 3, session_s: float = 180.0,
+    rate_hz: float = 25.0, scales: Sequence[float] | None = None,
+) -> tuple[dict[str, np.ndarray], Hidden]:
+    """Log columns with the hidden causes (``[]`` for the null case) and what was hidden.
+
+    ``causes=None`` lets the seed choose one cause. The schedule is the 18-pose tumble.
+    """
+    rng = np.random.default_rng([seed, 0x41DE])
+    chosen = [CAUSES[int(rng.integers(len(CAUSES)))]] if causes is None else list(causes)
+    h = Hidden(chosen)
+    h.thermal = Thermal(rise_c=rng.uniform(0.0, 4.0), tau_s=120.0)
+    for i, c in enumerate(chosen):
+        _add(h, c, rng, session_s, (scales[i] if scales else 1.0))
+    if "warmup" in chosen:
+        h.thermal = Thermal(rise_c=0.0, cycle_c=0.0)
+    model = TruthModel(thermal=h.thermal, effects=h.effects)
+    n = int(session_s * rate_hz)
+    parts = [SessionStream(model, tumble(), rate_hz, seed, boot, t0_s=boot * (session_s + 60.0)).chunk(n)
+             for boot in range(n_sessions)]
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    keep = ["t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session"]
+    if "scale_factor" in chosen:
+        keep += ["ref_wx", "ref_wy", "ref_wz"]
+    if "warmup" in chosen and rng.random() < 0.5:
+        keep.remove("temp")
+    return {k: cols[k] for k in keep}, h
+
+
+def write_hidden_log(path: str | Path, seed: int, **kwargs) -> Hidden:
+    """Generate with ``generate`` and write a Contract 1 log; returns what was hidden."""
+    cols, h = generate(seed, **kwargs)
+    write_log(path, cols, {"generator": "gyrocal.analysis.hidden", "seed": str(seed)})
+    return h
+
+
+def inject(columns: Mapping[str, np.ndarray], cause: str, amplitude_dps: float, axes: Sequence[str],
+           seed: int = 0, **params: float) -> dict[str, np.ndarray]:
+    """A copy of a real log's columns with one effect added to the gyro of ``axes``.
+
+    warmup: amplitude * exp(-t_on / tau_s); periodic: amplitude * sin(2 pi frequency_hz t);
+    random_walk: a walk of intensity amplitude [deg/s/sqrt(s)]. Time since switch-on is per session.
+    """
+    out = {k: np.array(v, dtype=float) for k, v in columns.items()}
+    t = out["t"]
+    session = out.get("session", np.zeros_like(t))
+    t_on = t - np.array([t[session == s][0] for s in session]) if np.unique(session).size > 1 \
+        else t - t[0]
+    if cause == "warmup":
+        sig = amplitude_dps * np.exp(-t_on / params.get("tau_s", 30.0))
+    elif cause == "periodic":
+        sig = amplitude_dps * np.sin(2 * np.pi * params.get("frequency_hz", 1.0) * t)
+    elif cause == "random_walk":
+        rng = np.random.default_rng([seed, 0x3A1C])
+        dt = np.diff(t, prepend=t[0])
+        sig = np.cumsum(rng.normal(0, 1, t.size) * amplitude_dps * np.sqrt(np.maximum(dt, 0)))
+    else:
+        raise ValueError(f"inject: cause {cause!r} is not supported; use warmup, periodic or random_walk")
+    for a in axes:
+        out[f"w{a}"] = out[f"w{a}"] + sig
+    return out

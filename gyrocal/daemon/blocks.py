@@ -1,0 +1,126 @@
+"""Still blocks: the daemon's unit of evidence for validation and monitoring.
+
+The per-sample white noise of a gyro (0.002 deg/s in the virtual unit, 0.3 deg/s on an MEMS part)
+hides the drift a calibration removes. Averaging each still stretch over ``block_s`` seconds keeps
+the drift and shrinks the noise by sqrt(n), which is what a navigation user cares about (the bias
+error, not the per-sample noise; cf. Contract 2's tau_s). Because the model is linear in its terms,
+the block mean of ``C @ phi`` is ``C @ mean(phi)``: a block needs only its means to test any set.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Block:
+    """Means over one still block: raw rate [deg/s] (3,), output rate [deg/s] (3,), terms (P,)."""
+
+    raw_dps: np.ndarray
+    out_dps: np.ndarray
+    phi: np.ndarray
+    n: int
+    holdout: bool
+
+
+class BlockAccumulator:
+    """Cuts the still samples into blocks of ``size`` samples; a break in stillness ends a block.
+
+    Every ``holdout_every``-th block is marked holdout: its samples are kept out of training so the
+    validation step can judge a coefficient set on data the estimator did not see.
+    """
+
+    def __init__(self, size: int, holdout_every: int, n_terms: int) -> None:
+        self.size = max(2, size)
+        self.holdout_every = holdout_every
+        self.count = 0
+        self._reset(n_terms)
+
+    def _reset(self, n_terms: int) -> None:
+        self._raw = np.zeros(3)
+        self._out = np.zeros(3)
+        self._phi = np.zeros(n_terms)
+        self._n = 0
+
+    @property
+    def current_is_holdout(self) -> bool:
+        return self.count % self.holdout_every == self.holdout_every - 1
+
+    def feed(
+        self, raw: np.ndarray, out: np.ndarray, phi: np.ndarray, still: np.ndarray,
+    ) -> tuple[list[Block], np.ndarray]:
+        """Add samples; return the blocks completed and a mask of samples that may be trained on.
+
+        raw, out: (N, 3) deg/s; phi: (N, P); still: (N,) bool. Non-still samples end a block (a
+        partial block of at least half the size is kept) and are never trained on.
+        """
+        done: list[Block] = []
+        train = np.zeros(still.shape[0], dtype=bool)
+        i, n = 0, still.shape[0]
+        while i < n:
+            if not still[i]:
+                self._close(done, partial=True)
+                j = i + 1
+                while j < n and not still[j]:
+                    j += 1
+                i = j
+                continue
+            j = i
+            room = self.size - self._n
+            while j < n and still[j] and j - i < room:
+                j += 1
+            sl = slice(i, j)
+            if not self.current_is_holdout:
+                train[sl] = True
+            self._raw += raw[sl].sum(axis=0)
+            self._out += out[sl].sum(axis=0)
+            self._phi += phi[sl].sum(axis=0)
+            self._n += j - i
+            if self._n >= self.size:
+                self._close(done, partial=False)
+            i = j
+        return done, train
+
+    def _close(self, done: list[Block], partial: bool) -> None:
+        if self._n == 0:
+            return
+        if not partial or self._n >= self.size // 2:
+            n = self._n
+            done.append(Block(self._raw / n, self._out / n, self._phi / n, n, self.current_is_holdout))
+            self.count += 1
+        self._reset(self._phi.shape[0])
+
+
+class BlockWindow:
+    """The newest blocks, bounded in number (O(1) memory however long the daemon runs)."""
+
+    def __init__(self, maxlen: int) -> None:
+        self.blocks: deque[Block] = deque(maxlen=max(1, maxlen))
+
+    def add(self, blocks: list[Block]) -> None:
+        self.blocks.extend(blocks)
+
+    def clear(self) -> None:
+        self.blocks.clear()
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def rms_out(self) -> np.ndarray:
+        """RMS over blocks of the unit's output mean [deg/s], per axis: the drift left in the output."""
+        if not self.blocks:
+            return np.full(3, np.nan)
+        out = np.array([b.out_dps for b in self.blocks])
+        return np.sqrt(np.mean(out**2, axis=0))
+
+    def rms_with(self, coeffs_dps: np.ndarray) -> np.ndarray:
+        """RMS over blocks of raw minus the compensation ``coeffs_dps`` (3, P) would apply [deg/s]."""
+        if not self.blocks:
+            return np.full(3, np.nan)
+        raw = np.array([b.raw_dps for b in self.blocks])
+        phi = np.array([b.phi for b in self.blocks])
+        res = raw - phi @ np.asarray(coeffs_dps).T
+        return np.sqrt(np.mean(res**2, axis=0))

@@ -1,0 +1,286 @@
+"""`gyrocal status | recalibrate | rollback | push`: talk to a running daemon over its control socket.
+
+These commands are thin clients: they build one request, send it with control.request, and print
+the answer. They never touch the unit or the store themselves, so the daemon stays the one owner of
+both. Exit status: 0 when the daemon answered ok, 1 when it answered ok=false (e.g. nothing to roll
+back to), 2 on a user error (bad file, no daemon listening: the CLI prints the GyrocalError).
+
+Requests sent (the daemon's handler answers them):
+    {"cmd": "status"}
+    {"cmd": "recalibrate"}
+    {"cmd": "rollback", "to": VERSION or null}         # null: the acked version before the current one
+    {"cmd": "push", "terms": [P names], "coefficients": [[P], [P], [P]], "source": "FILE"}
+        coefficients are rows x, y, z in deg/s per unit of each term (as in the store).
+
+The status answer is rendered from these keys when present (others are listed at the end, cut short):
+    state, reason, message, unit {serial, boot_count, fw}, applied {version}, samples, still_samples,
+    trained_samples, converged, converged_reason, rms_dps | monitor_rms_dps {x,y,z}, alarm, terms,
+    coefficients_dps and uncertainty_dps ({x,y,z} or 3 rows), link {...}, ring {...}, validation {...},
+    last_push {status, attempts, version, ...}; or "units": [one such object per unit].
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from gyrocal.daemon.control import default_socket_path, request
+from gyrocal.errors import ConfigError
+
+AXES = ("x", "y", "z")
+
+
+def _add_socket(parser: argparse.ArgumentParser) -> None:
+    default = default_socket_path()
+    parser.add_argument("--socket", type=Path, default=default, metavar="PATH",
+                        help=f"the daemon's control socket (default: $GYROCAL_SOCKET or {default})")
+
+
+def _answer(reply: dict, ok_text: str | None = None) -> int:
+    if not reply.get("ok", False):
+        print(f"gyrocal: daemon refused: {reply.get('error', 'no reason given')}", file=sys.stderr)
+        return 1
+    if ok_text is not None:
+        print(reply.get("message") or ok_text)
+    return 0
+
+
+# --- status --------------------------------------------------------------------------------------
+
+def configure_status(parser: argparse.ArgumentParser) -> None:
+    _add_socket(parser)
+    parser.add_argument("--json", action="store_true", help="print the daemon's answer as JSON")
+
+
+def main_status(args: argparse.Namespace) -> int:
+    reply = request(args.socket, {"cmd": "status"})
+    if args.json:
+        print(json.dumps(reply, indent=2, sort_keys=True))
+        return 0 if reply.get("ok", False) else 1
+    if not reply.get("ok", False):
+        return _answer(reply)
+    print(format_status(reply))
+    return 0
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v)
+
+
+def _rows(coeffs: Any) -> list[tuple[str, list]] | None:
+    if isinstance(coeffs, dict) and all(a in coeffs for a in AXES):
+        return [(a, coeffs[a]) for a in AXES]
+    if isinstance(coeffs, list) and len(coeffs) == 3 and all(isinstance(r, list) for r in coeffs):
+        return list(zip(AXES, coeffs, strict=True))
+    return None
+
+
+_SHOWN = {"ok", "state", "reason", "message", "unit", "serial", "applied", "version", "samples",
+          "still_samples", "trained_samples", "converged", "converged_reason", "rms_dps", "rms",
+          "monitor_rms_dps", "alarm", "terms", "coefficients_dps", "coefficients", "uncertainty_dps",
+          "link", "ring", "last_push", "validation", "units"}
+_MAX_EXTRA = 100  # an unknown key's value is cut to this many characters in the human view
+
+
+def format_status(reply: dict) -> str:
+    """A human-readable status: one block per unit, tolerant of missing or unknown keys."""
+    units = reply.get("units")
+    if isinstance(units, list) and units:
+        blocks = [_format_unit(u) for u in units if isinstance(u, dict)]
+        extra = {k: v for k, v in reply.items() if k not in _SHOWN}
+        if extra:
+            blocks.append("\n".join(_extra_line(k, v) for k, v in extra.items()))
+        return "\n\n".join(blocks)
+    return _format_unit(reply)
+
+
+def _extra_line(key: str, value: Any) -> str:
+    text = _fmt(value)
+    return f"{key:<13}{text if len(text) <= _MAX_EXTRA else text[:_MAX_EXTRA - 3] + '...'}"
+
+
+def _format_unit(s: dict) -> str:
+    lines = [f"{'state':<13}{s.get('state', '?')}" + (f"  ({s['reason']})" if s.get("reason") else "")]
+    if s.get("message"):
+        lines.append(f"{'message':<13}{s['message']}")
+    unit = s.get("unit") if isinstance(s.get("unit"), dict) else {}
+    serial = unit.get("serial", s.get("serial"))
+    if serial is not None:
+        lines.append(f"{'unit':<13}serial {serial}" + "".join(f", {k} {v}" for k, v in unit.items()
+                                                            if k != "serial"))
+    applied = s.get("applied")
+    version = applied.get("version") if isinstance(applied, dict) else s.get("version")
+    if "applied" in s or "version" in s:
+        lines.append(f"{'applied':<13}" + (f"v{version}" if version is not None else "none"))
+    if s.get("samples") is not None:
+        more = [f"{k.replace('_samples', '')} {s[k]}" for k in ("still_samples", "trained_samples")
+                if s.get(k) is not None]
+        lines.append(f"{'samples':<13}{s['samples']}" + (f" ({', '.join(more)})" if more else ""))
+    if "converged" in s:
+        lines.append(f"{'converged':<13}{'yes' if s['converged'] else 'no'}"
+                     + (f" ({s['converged_reason']})" if s.get("converged_reason") else ""))
+    for key in ("rms_dps", "rms", "monitor_rms_dps"):
+        rms = s.get(key)
+        if isinstance(rms, dict):
+            lines.append(f"{'rms [deg/s]':<13}" + "  ".join(f"{a}={_fmt(rms[a])}" for a in AXES if a in rms))
+            break
+    if s.get("alarm"):
+        lines.append(f"{'ALARM':<13}{_fmt(s['alarm'])}")
+    lines += _coefficient_table(s)
+    for key, label in (("link", "link"), ("ring", "ring"), ("validation", "validation")):
+        if isinstance(s.get(key), dict) and s[key]:
+            lines.append(_extra_line(label, s[key]))
+    push = s.get("last_push")
+    if "last_push" in s:
+        lines.append(_extra_line("last push", push) if push else f"{'last push':<13}none yet")
+    for k, v in s.items():
+        if k not in _SHOWN:
+            lines.append(_extra_line(k, v))
+    return "\n".join(lines)
+
+
+def _coefficient_table(s: dict) -> list[str]:
+    rows = _rows(s.get("coefficients_dps", s.get("coefficients")))
+    if not rows:
+        return []
+    unc = _rows(s.get("uncertainty_dps")) or []
+    unc_by_axis = dict(unc)
+    terms = s.get("terms") or []
+    width = max([len(str(t)) for t in terms] + [4])
+    col = 22 if unc else 12
+    out = ["coefficients [deg/s per term unit]" + (" +- 1 sigma" if unc else ""),
+           "  " + "term".ljust(width) + "".join(f"{a:>{col}}" for a in AXES)]
+    for i in range(max(len(r) for _, r in rows)):
+        name = str(terms[i]) if i < len(terms) else f"#{i}"
+        cells = []
+        for a, r in rows:
+            cell = f"{r[i]:+.4e}" if i < len(r) and isinstance(r[i], int | float) else "?"
+            u = unc_by_axis.get(a)
+            if u is not None and i < len(u):
+                cell += f" +-{u[i]:.1e}" if isinstance(u[i], int | float) else " +- undet."
+            cells.append(f"{cell:>{col}}")
+        out.append("  " + name.ljust(width) + "".join(cells))
+    return out
+
+
+# --- recalibrate ---------------------------------------------------------------------------------
+
+def configure_recalibrate(parser: argparse.ArgumentParser) -> None:
+    _add_socket(parser)
+
+
+def main_recalibrate(args: argparse.Namespace) -> int:
+    return _answer(request(args.socket, {"cmd": "recalibrate"}), "recalibration started")
+
+
+# --- rollback ------------------------------------------------------------------------------------
+
+def _version(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a version number; see `gyrocal status`") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError("versions start at 1")
+    return v
+
+
+def configure_rollback(parser: argparse.ArgumentParser) -> None:
+    _add_socket(parser)
+    parser.add_argument("--to", type=_version, default=None, metavar="VERSION",
+                        help="the stored version to push again (default: the acked one before the current)")
+
+
+def main_rollback(args: argparse.Namespace) -> int:
+    reply = request(args.socket, {"cmd": "rollback", "to": args.to})
+    return _answer(reply, f"rolled back to version {reply.get('version', args.to or 'previous')}")
+
+
+# --- push ----------------------------------------------------------------------------------------
+
+def configure_push(parser: argparse.ArgumentParser) -> None:
+    _add_socket(parser)
+    parser.add_argument("--file", type=Path, required=True, metavar="FILE",
+                        help="JSON or YAML with 'terms' and 'coefficients' ({x,y,z} or 3 rows, deg/s per "
+                             "term unit); `gyrocal fit --json` output and store records are accepted")
+
+
+def main_push(args: argparse.Namespace) -> int:
+    terms, coeffs = load_coefficient_file(args.file)
+    reply = request(args.socket, {"cmd": "push", "terms": terms, "coefficients": coeffs,
+                                  "source": os.fspath(args.file)}, timeout=30.0)
+    return _answer(reply, f"pushed {len(terms)} terms from {args.file}")
+
+
+def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
+    """Read and validate a coefficient set; return (terms, 3 rows x, y, z). Raises ConfigError."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}; fix: pass an existing .json or "
+                          ".yaml file to --file") from err
+    try:
+        if Path(path).suffix.lower() in (".yaml", ".yml"):
+            doc = yaml.safe_load(text)
+        else:
+            doc = json.loads(text)
+    except (ValueError, yaml.YAMLError) as err:
+        kind = "YAML" if Path(path).suffix.lower() in (".yaml", ".yml") else "JSON"
+        raise ConfigError(f"{path}: not valid {kind}: {err}; fix: the file must hold an object with "
+                          "'terms' and 'coefficients' (name YAML files .yaml)") from err
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: top level is {type(doc).__name__}; fix: it must be an object with "
+                          "'terms' and 'coefficients'")
+    terms = doc.get("terms")
+    if not isinstance(terms, list) or not terms or not all(isinstance(t, str) and t.strip() for t in terms):
+        raise ConfigError(f"{path}: field 'terms' must be a non-empty list of term names, e.g. "
+                          "['1', 'gx', 'gy', 'gz']; got " + repr(terms)[:80])
+    terms = [t.strip() for t in terms]
+    from gyrocal.model.terms import TermSpec  # imported late: it pulls in numpy
+
+    try:
+        TermSpec.parse(terms)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: field 'terms': {err}") from err
+    key = next((k for k in ("coefficients", "coefficients_dps") if k in doc), None)
+    if key is None:
+        raise ConfigError(f"{path}: field 'coefficients' is missing; fix: add coefficients: {{x: [...], "
+                          "y: [...], z: [...]}} with one value per term in deg/s per term unit")
+    raw = doc[key]
+    if isinstance(raw, dict):
+        missing = [a for a in AXES if a not in raw]
+        if missing:
+            raise ConfigError(f"{path}: field '{key}' lacks axes {missing}; fix: give x, y and z")
+        rows = [raw[a] for a in AXES]
+    elif isinstance(raw, list) and len(raw) == 3:
+        rows = raw
+    else:
+        raise ConfigError(f"{path}: field '{key}' must be {{x: [...], y: [...], z: [...]}} or a list of 3 "
+                          "rows (x, y, z)")
+    out: list[list[float]] = []
+    for axis, row in zip(AXES, rows, strict=True):
+        if not isinstance(row, list) or len(row) != len(terms):
+            n = len(row) if isinstance(row, list) else type(row).__name__
+            raise ConfigError(f"{path}: field '{key}.{axis}' has {n} values but there are {len(terms)} "
+                              "terms; fix: give one coefficient per term, in the order of 'terms'")
+        vals = []
+        for i, v in enumerate(row):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{path}: field '{key}.{axis}[{i}]' (term {terms[i]!r}) is {v!r}; fix: "
+                                  "a finite number in deg/s per term unit")
+            vals.append(float(v))
+        out.append(vals)
+    return terms, out

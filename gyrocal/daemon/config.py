@@ -1,0 +1,261 @@
+"""The daemon's YAML configuration: loaded once, checked once, every error naming file, field, fix.
+
+Why a table-driven checker instead of a schema library: the messages are the product here. A
+navigation engineer editing /etc/gyrocal/gyrocal.yaml on a vehicle must read exactly which field is
+wrong and what to write instead, in one line of the journal.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from gyrocal.errors import ConfigError
+from gyrocal.model.terms import SEED000_TERMS, TermSpec
+
+DEFAULT_CONFIG = "default.yaml"
+
+# section -> field -> (types, default, fix hint)
+_SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
+    "link": {
+        "kind": ((str,), "serial", "write `serial` or `can`"),
+        "url": ((str,), "auto", "write a device such as /dev/gyrocal-imu, a pyserial URL, or `auto`"),
+        "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
+        "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}"),
+        "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
+    },
+    "virtual_unit": {
+        "enabled": ((bool,), False, "write true or false"),
+        "seed": ((int,), 1, "write an integer seed"),
+        "rate_hz": ((int, float), 1000, "write a sample rate in Hz, 1 to 2000"),
+        "dwell_s": ((int, float), 1.2, "write the dwell per pose in seconds"),
+        "move_s": ((int, float), 0.4, "write the rotation time between poses in seconds"),
+        "schedule": ((str,), "", "write the path of a YAML schedule, or leave it out for the tumble"),
+        "extra_args": ((list,), [], "write a list of extra `gyrocal sim` arguments"),
+    },
+    "estimator": {
+        "method": ((str,), "rls", "write rls, nlms or lms"),
+        "terms": ((str, list), "seed000", "write `seed000`, a list of term names, or a YAML terms file"),
+        "forgetting": ((int, float), 1.0, "write a forgetting factor in (0.9, 1]"),
+        "step": ((int, float), 0.5, "write an NLMS/LMS step size in (0, 2)"),
+        "convergence": ((dict,), {}, "write a mapping of convergence thresholds"),
+        "warm_start_inflation": ((int, float), 100.0,
+                                 "write how much the stored uncertainty widens at switch-on (>= 1)"),
+    },
+    "validation": {
+        "holdout_every": ((int,), 5, "write an integer >= 2: every n-th still block is held out"),
+        "block_s": ((int, float), 0.5, "write the still-block length in seconds"),
+        "min_improvement": ((int, float), 0.2, "write a fraction in [0, 1)"),
+        "min_holdout_blocks": ((int,), 6, "write the least number of held-out blocks before validating"),
+    },
+    "push": {
+        "ack_timeout_s": ((int, float), 1.0, "write a timeout in seconds"),
+        "retries": ((int,), 3, "write the number of attempts, >= 1"),
+    },
+    "monitor": {
+        "alarm_ratio": ((int, float), 3.0, "write a ratio > 1"),
+        "window_s": ((int, float), 10.0, "write a window in seconds"),
+        "alarm_floor_dps": ((int, float), 0.002, "write the smallest residual [deg/s] that can alarm"),
+    },
+    "still": {
+        "window_s": ((int, float), 0.2, "write the still-detector window in seconds"),
+        "gyro_std_dps": ((int, float), 0.05, "write the gyro std [deg/s] below which the unit is still"),
+        "accel_tol_g": ((int, float), 0.05, "write the tolerance [g] on |a| = 1 g when still"),
+    },
+}
+_TOP = {
+    "state_dir": ((str,), "auto", "write a directory path, or `auto`"),
+    "control_socket": ((str,), "auto", "write a socket path, or `auto`"),
+    "watchdog": ((bool,), True, "write true or false"),
+}
+
+
+@dataclass
+class DaemonConfig:
+    """The checked configuration. Sections are plain dicts with every default filled in."""
+
+    link: dict[str, Any]
+    virtual_unit: dict[str, Any]
+    estimator: dict[str, Any]
+    validation: dict[str, Any]
+    push: dict[str, Any]
+    monitor: dict[str, Any]
+    still: dict[str, Any]
+    state_dir: Path
+    control_socket: Path
+    watchdog: bool = True
+    source: str = "<default>"
+    terms: list[str] = field(default_factory=lambda: list(SEED000_TERMS))
+
+
+def default_config_path() -> Path:
+    return Path(str(resources.files("gyrocal") / "configs" / DEFAULT_CONFIG))
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> DaemonConfig:
+    """Load and check a config file (the packaged default when ``path`` is None)."""
+    p = Path(path) if path is not None else default_config_path()
+    name = str(p)
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{name}: no such config file; pass an existing file to --config") from None
+    except OSError as err:
+        raise ConfigError(f"{name}: cannot read the config ({err.strerror})") from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f":{mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{name}{where}: not valid YAML ({getattr(err, 'problem', err)})") from None
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{name}: the top level must be a mapping of sections (link:, estimator:, ...)")
+    for key, value in (overrides or {}).items():
+        section, _, fld = key.partition(".")
+        if fld:
+            doc.setdefault(section, {})[fld] = value
+        else:
+            doc[key] = value
+    return _check(doc, name)
+
+
+def _check_field(name: str, dotted: str, value: Any, spec: tuple[tuple[type, ...], Any, str]) -> Any:
+    types, _, fix = spec
+    if isinstance(value, bool) and bool not in types:
+        raise ConfigError(f"{name}: field '{dotted}' is {value!r}; {fix}")
+    if not isinstance(value, types):
+        raise ConfigError(f"{name}: field '{dotted}' is {value!r}; {fix}")
+    return value
+
+
+def _check(doc: dict[str, Any], name: str) -> DaemonConfig:
+    unknown = set(doc) - set(_SCHEMA) - set(_TOP)
+    if unknown:
+        key = sorted(unknown)[0]
+        raise ConfigError(
+            f"{name}: unknown field '{key}'; known sections are {', '.join([*_SCHEMA, *_TOP])}"
+        )
+    sections: dict[str, dict[str, Any]] = {}
+    for section, fields in _SCHEMA.items():
+        given = doc.get(section) or {}
+        if not isinstance(given, dict):
+            raise ConfigError(f"{name}: field '{section}' must be a mapping of its fields")
+        extra = set(given) - set(fields)
+        if extra:
+            key = sorted(extra)[0]
+            raise ConfigError(
+                f"{name}: unknown field '{section}.{key}'; {section} takes {', '.join(fields)}"
+            )
+        out = {}
+        for fld, spec in fields.items():
+            value = given.get(fld, spec[1])
+            out[fld] = _check_field(name, f"{section}.{fld}", value, spec)
+        sections[section] = out
+    top = {k: _check_field(name, k, doc.get(k, spec[1]), spec) for k, spec in _TOP.items()}
+    _check_ranges(sections, name)
+    terms = _resolve_terms(sections["estimator"]["terms"], name)
+    return DaemonConfig(
+        **sections,
+        state_dir=_state_dir(top["state_dir"]),
+        control_socket=_socket_path(top["control_socket"]),
+        watchdog=top["watchdog"],
+        source=name,
+        terms=terms,
+    )
+
+
+def _fail(name: str, dotted: str, value: Any, fix: str) -> None:
+    raise ConfigError(f"{name}: field '{dotted}' is {value!r}; {fix}")
+
+
+def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
+    link, est, val = s["link"], s["estimator"], s["validation"]
+    if link["kind"] not in ("serial", "can"):
+        _fail(name, "link.kind", link["kind"], "write `serial` or `can`")
+    if link["kind"] == "can" and not link["can"] and not s["virtual_unit"]["enabled"]:
+        _fail(name, "link.can", link["can"], "give python-can Bus arguments, e.g. {interface: socketcan, "
+              "channel: can0}")
+    if link["url"] == "auto" and link["kind"] == "serial" and not s["virtual_unit"]["enabled"]:
+        _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
+    if est["method"] not in ("rls", "nlms", "lms"):
+        _fail(name, "estimator.method", est["method"], "write rls, nlms or lms")
+    if not 0.9 < est["forgetting"] <= 1.0:
+        _fail(name, "estimator.forgetting", est["forgetting"], "write a factor in (0.9, 1]")
+    if est["warm_start_inflation"] < 1:
+        _fail(name, "estimator.warm_start_inflation", est["warm_start_inflation"], "write a number >= 1")
+    if val["holdout_every"] < 2:
+        _fail(name, "validation.holdout_every", val["holdout_every"], "write an integer >= 2")
+    if not 0 <= val["min_improvement"] < 1:
+        _fail(name, "validation.min_improvement", val["min_improvement"], "write a fraction in [0, 1)")
+    if s["push"]["retries"] < 1:
+        _fail(name, "push.retries", s["push"]["retries"], "write an integer >= 1")
+    if not 1 <= s["virtual_unit"]["rate_hz"] <= 2000:
+        _fail(name, "virtual_unit.rate_hz", s["virtual_unit"]["rate_hz"], "write a rate in Hz, 1 to 2000")
+    if s["monitor"]["alarm_ratio"] <= 1:
+        _fail(name, "monitor.alarm_ratio", s["monitor"]["alarm_ratio"], "write a ratio > 1")
+
+
+def _resolve_terms(value: str | list[Any], name: str) -> list[str]:
+    if value == "seed000":
+        names = list(SEED000_TERMS)
+    elif isinstance(value, list):
+        names = [str(v) for v in value]
+    else:
+        path = Path(value)
+        if not path.is_absolute():
+            path = Path(name).parent / path
+        try:
+            doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError) as err:
+            raise ConfigError(
+                f"{name}: field 'estimator.terms' names {str(path)!r}, which cannot be read ({err}); "
+                "write `seed000`, a list of terms, or an existing terms file"
+            ) from None
+        names = doc.get("terms") if isinstance(doc, dict) else doc
+        if not isinstance(names, list):
+            raise ConfigError(f"{path}: field 'terms' missing; write `terms: [1, gx, ...]`")
+        names = [str(v) for v in names]
+    try:
+        TermSpec.parse(names)
+    except ConfigError as err:
+        raise ConfigError(f"{name}: field 'estimator.terms': {err}") from None
+    return names
+
+
+def _writable_dir(path: Path) -> bool:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(path, os.W_OK)
+
+
+def _state_dir(value: str) -> Path:
+    if value != "auto":
+        return Path(value).expanduser()
+    if os.environ.get("STATE_DIRECTORY"):  # set by systemd's StateDirectory=
+        return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
+    system = Path("/var/lib/gyrocal")
+    if _writable_dir(system):
+        return system
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "gyrocal"
+
+
+def _socket_path(value: str) -> Path:
+    if value != "auto":
+        return Path(value).expanduser()
+    if os.environ.get("GYROCAL_SOCKET"):
+        return Path(os.environ["GYROCAL_SOCKET"])
+    if os.environ.get("RUNTIME_DIRECTORY"):  # set by systemd's RuntimeDirectory=
+        return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0]) / "control.sock"
+    system = Path("/run/gyrocal")
+    if _writable_dir(system):
+        return system / "control.sock"
+    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/gyrocal-{os.getuid()}"
+    return Path(base) / "gyrocal" / "control.sock"

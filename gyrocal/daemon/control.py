@@ -1,0 +1,346 @@
+"""The control socket: JSON lines over a Unix stream socket in the runtime directory.
+
+Why a Unix socket and JSON lines: the operator's ``gyrocal status`` must work without network
+exposure, access is governed by file permissions (mode 0660, group gyrocal), and one JSON object per
+line is easy to drive by hand (``socat - UNIX-CONNECT:/run/gyrocal/control.sock``) and to test.
+
+Protocol: the client sends one JSON object per line, e.g. ``{"cmd": "status"}``; the server answers
+each with one JSON object on one line holding at least ``"ok": true|false`` and, when false,
+``"error": "one sentence"``. A connection may carry several requests.
+
+Threads: one acceptor thread (it blocks in select() on the listening socket and a wake-up
+socketpair, so stop() is immediate and nothing polls), plus one short-lived thread per connection (at
+most MAX_CLIENTS). The daemon's handler is called under a lock, one request at a time, so it never
+runs concurrently with itself; it must answer quickly (a snapshot of the daemon's state, no I/O wait).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import select
+import socket
+import stat
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from gyrocal.errors import ConfigError, GyrocalError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SOCKET = Path("/run/gyrocal/control.sock")
+MAX_LINE_BYTES = 1 << 20  # a coefficient set is a few kB; anything this long is not a request
+MAX_CLIENTS = 8
+CLIENT_IDLE_S = 30.0  # a client that connects and says nothing is dropped after this
+_SUN_PATH_MAX = 107  # sockaddr_un.sun_path is 108 bytes including the terminating NUL
+
+Handler = Callable[[dict], dict]
+
+
+def default_socket_path() -> Path:
+    """Where a client looks for the daemon: the same places, in the same order, as the daemon's
+    `control_socket: auto` (config.py): $GYROCAL_SOCKET, $RUNTIME_DIRECTORY/control.sock (systemd),
+    /run/gyrocal/control.sock, then the per-user fallback a daemon started by hand uses when
+    /run/gyrocal is not writable. The first existing socket wins; /run/gyrocal/control.sock if none."""
+    env = os.environ.get("GYROCAL_SOCKET")
+    if env:
+        return Path(env)
+    candidates = []
+    runtime = os.environ.get("RUNTIME_DIRECTORY", "")
+    if runtime:
+        candidates.append(Path(runtime.split(":")[0]) / "control.sock")
+    candidates.append(DEFAULT_SOCKET)
+    user_base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/gyrocal-{os.getuid()}"
+    candidates.append(Path(user_base) / "gyrocal" / "control.sock")
+    for path in candidates:
+        with contextlib.suppress(OSError):
+            if stat.S_ISSOCK(os.stat(path).st_mode):
+                return path
+    return candidates[0]
+
+
+def _json_default(obj: Any) -> Any:
+    """Let handlers answer with numpy scalars/arrays or Paths without each one converting by hand."""
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path | bytes):
+        return str(obj)
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def encode_line(obj: dict) -> bytes:
+    return json.dumps(obj, default=_json_default, separators=(",", ":")).encode() + b"\n"
+
+
+def _check_path_length(path: Path) -> None:
+    n = len(os.fsencode(path))
+    if n > _SUN_PATH_MAX:
+        raise ConfigError(f"control socket path {path} is {n} bytes; a Unix socket path may have at most "
+                          f"{_SUN_PATH_MAX}; fix: choose a shorter path (e.g. /run/gyrocal/control.sock)")
+
+
+class ControlServer:
+    """Serve ``handler`` on a Unix stream socket at ``path``. start() and stop() are idempotent."""
+
+    def __init__(self, path: Path | str, handler: Handler, mode: int = 0o660) -> None:
+        self.path = Path(path)
+        self.handler = handler
+        self.mode = mode
+        self._sock: socket.socket | None = None
+        self._inode: tuple[int, int] | None = None
+        self._acceptor: threading.Thread | None = None
+        self._wake_r: socket.socket
+        self._wake_w: socket.socket
+        self._clients: set[socket.socket] = set()
+        self._client_threads: set[threading.Thread] = set()
+        self._state_lock = threading.Lock()
+        self._handler_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self.requests = 0
+        self.errors = 0
+
+    def __enter__(self) -> ControlServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._sock is not None
+
+    def start(self) -> None:
+        """Bind, chmod, listen and start the acceptor thread. Raises GyrocalError if the path is taken."""
+        with self._state_lock:
+            if self._sock is not None:
+                return
+            _check_path_length(self.path)
+            self._remove_stale()
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                sock.bind(os.fspath(self.path))
+            except OSError as err:
+                sock.close()
+                raise ConfigError(f"control socket: cannot bind {self.path}: {err.strerror or err}; "
+                                  f"fix: make {self.path.parent} writable by the daemon "
+                                  "(systemd: RuntimeDirectory=gyrocal) or choose another daemon.socket path"
+                                  ) from err
+            # chmod after bind: bind() creates the file with the umask applied, and the group must be able
+            # to connect. The directory mode (RuntimeDirectoryMode=0750) limits who can reach it.
+            os.chmod(self.path, self.mode)
+            st = os.stat(self.path)
+            self._inode = (st.st_dev, st.st_ino)
+            sock.listen(MAX_CLIENTS)
+            sock.setblocking(False)
+            self._wake_r, self._wake_w = socket.socketpair()  # stop() writes here to wake the acceptor
+            self._sock = sock
+            self._stopping.clear()
+            self._acceptor = threading.Thread(target=self._accept_loop, name="gyrocal-control", daemon=True)
+            self._acceptor.start()
+            log.info("control socket listening on %s (mode %o)", self.path, self.mode)
+
+    def _remove_stale(self) -> None:
+        """A socket file left by a killed daemon blocks bind(); remove it, unless someone still listens."""
+        try:
+            st = os.lstat(self.path)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISSOCK(st.st_mode):
+            raise ConfigError(f"control socket: {self.path} exists and is not a socket; fix: remove it or "
+                              "choose another daemon.socket path")
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        probe.settimeout(1.0)
+        try:
+            probe.connect(os.fspath(self.path))
+        except (ConnectionRefusedError, FileNotFoundError):
+            log.warning("control socket: removing stale socket file %s (no one listens)", self.path)
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+            return
+        except OSError as err:
+            raise ConfigError(f"control socket: cannot probe {self.path}: {err}") from err
+        finally:
+            probe.close()
+        raise GyrocalError(f"another gyrocal daemon is listening on {self.path}; stop it first "
+                           "(systemctl stop gyrocal) or choose another daemon.socket path")
+
+    def stop(self) -> None:
+        """Stop accepting, close client connections, join threads and remove the socket file."""
+        with self._state_lock:
+            sock, self._sock = self._sock, None
+            if sock is None:
+                return
+            self._stopping.set()
+            acceptor = self._acceptor
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"x")
+        if acceptor is not None:
+            acceptor.join(timeout=5.0)
+        sock.close()
+        self._wake_r.close()
+        self._wake_w.close()
+        with self._state_lock:
+            clients, threads = list(self._clients), list(self._client_threads)
+        for c in clients:
+            with contextlib.suppress(OSError):
+                c.shutdown(socket.SHUT_RDWR)
+        for t in threads:
+            t.join(timeout=2.0)
+        self._unlink_own_socket()
+        log.info("control socket %s closed", self.path)
+
+    def _unlink_own_socket(self) -> None:
+        """Remove the socket file only if it is still the one we bound (a successor may own the path)."""
+        try:
+            st = os.lstat(self.path)
+            if (st.st_dev, st.st_ino) == self._inode:
+                os.unlink(self.path)
+        except FileNotFoundError:
+            pass
+
+    def _accept_loop(self) -> None:
+        sock, wake = self._sock, self._wake_r
+        while not self._stopping.is_set() and sock is not None:
+            try:
+                readable, _, _ = select.select([sock, wake], [], [])
+                if wake in readable:
+                    break
+                conn, _ = sock.accept()
+                conn.setblocking(True)
+            except BlockingIOError:  # the client went away between select and accept
+                continue
+            except OSError as err:
+                if self._stopping.is_set():
+                    break
+                # e.g. EMFILE: the daemon runs for months, so back off and keep serving, never give up
+                log.error("control socket: accept failed: %s; retrying in 1 s", err)
+                self._stopping.wait(1.0)
+                continue
+            if self._stopping.is_set():
+                conn.close()
+                break
+            with self._state_lock:
+                busy = len(self._clients) >= MAX_CLIENTS
+                if not busy:
+                    self._clients.add(conn)
+            if busy:
+                with contextlib.suppress(OSError):
+                    conn.sendall(encode_line({"ok": False, "error": "too many control connections; retry"}))
+                conn.close()
+                continue
+            t = threading.Thread(target=self._serve_client, args=(conn,), name="gyrocal-control-client",
+                                 daemon=True)
+            with self._state_lock:
+                self._client_threads.add(t)
+            t.start()
+
+    def _serve_client(self, conn: socket.socket) -> None:
+        conn.settimeout(CLIENT_IDLE_S)
+        buf = b""
+        try:
+            while not self._stopping.is_set():
+                nl = buf.find(b"\n")
+                if nl < 0:
+                    if len(buf) > MAX_LINE_BYTES:
+                        conn.sendall(encode_line({"ok": False, "error": f"request longer than "
+                                                  f"{MAX_LINE_BYTES} bytes; closing"}))
+                        return
+                    chunk = conn.recv(65536)
+                    if not chunk:
+                        if buf.strip():  # a last request without its newline still gets an answer
+                            conn.sendall(encode_line(self.dispatch(buf)))
+                        return
+                    buf += chunk
+                    continue
+                line, buf = buf[:nl], buf[nl + 1:]
+                if line.strip():
+                    conn.sendall(encode_line(self.dispatch(line)))
+        except (TimeoutError, ConnectionError, OSError) as err:
+            log.debug("control socket: client dropped: %s", err)
+        finally:
+            conn.close()
+            with self._state_lock:
+                self._clients.discard(conn)
+                self._client_threads.discard(threading.current_thread())
+
+    def dispatch(self, line: bytes) -> dict:
+        """Parse one request line and answer it; never raises (a bad request gets an error answer)."""
+        self.requests += 1
+        try:
+            req = json.loads(line)
+        except (ValueError, UnicodeDecodeError) as err:
+            self.errors += 1
+            return {"ok": False, "error": f"bad JSON: {err}; send one JSON object per line, "
+                                          'e.g. {"cmd": "status"}'}
+        if not isinstance(req, dict):
+            self.errors += 1
+            return {"ok": False, "error": 'a request must be a JSON object, e.g. {"cmd": "status"}'}
+        try:
+            with self._handler_lock:
+                reply = self.handler(req)
+        except Exception as err:  # the daemon must keep serving whatever one request does
+            self.errors += 1
+            log.exception("control socket: handler failed on %r", req.get("cmd"))
+            return {"ok": False, "error": f"{type(err).__name__}: {err}"}
+        if not isinstance(reply, dict):
+            self.errors += 1
+            log.error("control socket: handler answered %r, not a dict", type(reply).__name__)
+            return {"ok": False, "error": "internal error: the daemon's answer was not a JSON object"}
+        reply.setdefault("ok", True)
+        try:
+            encode_line(reply)
+        except (TypeError, ValueError) as err:
+            self.errors += 1
+            return {"ok": False, "error": f"internal error: answer not JSON serialisable: {err}"}
+        return reply
+
+
+def request(path: Path | str, obj: dict, timeout: float = 5.0) -> dict:
+    """Send one request to the daemon at ``path`` and return its answer. Raises GyrocalError."""
+    path = Path(path)
+    _check_path_length(path)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(timeout)
+    try:
+        try:
+            sock.connect(os.fspath(path))
+        except (FileNotFoundError, ConnectionRefusedError) as err:
+            raise GyrocalError(f"no gyrocal daemon listening on {path}; start it with `gyrocal run` or "
+                               "pass --socket") from err
+        except PermissionError as err:
+            raise GyrocalError(f"permission denied on {path}; add your user to group gyrocal "
+                               "(sudo usermod -aG gyrocal $USER, then log in again) or use sudo") from err
+        try:
+            sock.sendall(encode_line(obj))
+            buf = b""
+            while b"\n" not in buf:
+                chunk = sock.recv(65536)
+                if not chunk:
+                    raise GyrocalError(f"the gyrocal daemon on {path} closed the connection "
+                                       "without answering")
+                buf += chunk
+                if len(buf) > MAX_LINE_BYTES:
+                    raise GyrocalError(f"the gyrocal daemon on {path} sent an answer over "
+                                       f"{MAX_LINE_BYTES} bytes")
+        except TimeoutError as err:
+            raise GyrocalError(f"the gyrocal daemon on {path} did not answer within {timeout:g} s; "
+                               "check `journalctl -u gyrocal`") from err
+        except OSError as err:
+            raise GyrocalError(f"control socket {path}: {err.strerror or err}") from err
+    finally:
+        sock.close()
+    try:
+        reply = json.loads(buf[:buf.index(b"\n")])
+    except ValueError as err:
+        raise GyrocalError(f"the gyrocal daemon on {path} answered with bad JSON: {err}") from err
+    if not isinstance(reply, dict):
+        raise GyrocalError(f"the gyrocal daemon on {path} answered {type(reply).__name__}, not an object")
+    return reply

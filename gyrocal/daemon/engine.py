@@ -1,0 +1,324 @@
+"""The daemon's engine: who owns what, and the estimator loop.
+
+Threads and ownership (the one place this is written down):
+
+- **Link reader thread** (drivers/): owns the serial port or CAN bus. It decodes frames, pushes
+  SAMPLEs into the ring buffer, and posts every other frame and link event to ``inbox``.
+- **Engine loop** (this module, the main thread): owns the session, the estimator, the still
+  detector and all writes to the calibration store. It pops samples from the ring, drains
+  ``inbox``, sends frames through ``link.send`` (the link serialises writes with its own lock),
+  pings the systemd watchdog, and publishes ``status`` as a new dict each round.
+- **Control server thread** (control.py): answers ``status`` from the last published dict (a
+  reference swap, atomic under the GIL) and hands every other command to the engine through
+  ``inbox`` with a reply slot, so only the engine loop ever mutates the session.
+- **Signal handlers** (run in the main thread between bytecodes) only set flags or post to ``inbox``.
+
+Shared mutable state is therefore limited to the ring buffer (single producer, single consumer) and
+two thread-safe queues. A stuck engine loop stops pinging the watchdog and systemd restarts it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gyrocal.daemon.config import DaemonConfig, load_config
+from gyrocal.daemon.control import ControlServer
+from gyrocal.daemon.learner import make_learner
+from gyrocal.daemon.notify import Notifier
+from gyrocal.daemon.ring import RingBuffer
+from gyrocal.daemon.session import Session, State
+from gyrocal.daemon.stillness import StillConfig, StillDetector
+from gyrocal.daemon.store import CalibrationStore
+from gyrocal.drivers import open_link
+from gyrocal.protocol.messages import Hello
+
+log = logging.getLogger("gyrocal.engine")
+
+
+@dataclass
+class Reply:
+    """A reply slot for a control command handed to the engine loop."""
+
+    event: threading.Event = field(default_factory=threading.Event)
+    value: dict[str, Any] = field(default_factory=dict)
+
+
+class Engine:
+    """Joins one link to sessions, the store, the control socket and systemd."""
+
+    def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None) -> None:
+        self.cfg = cfg
+        self.inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
+        self.ring = RingBuffer(1 << 16)
+        self.store = CalibrationStore(cfg.state_dir)
+        self.notifier = Notifier()
+        self.link_cfg = link_cfg or dict(cfg.link)
+        self.link: Any = None
+        self.control: ControlServer | None = None
+        self.session: Session | None = None
+        self.last_hello: Hello | None = None
+        self.detector = self._new_detector(1000.0)
+        self.rate_hz: float | None = None
+        self.status: dict[str, Any] = {"state": "STARTING"}
+        self.started = time.monotonic()
+        self.dropped_nonfinite = 0
+        self.samples_before_hello = 0
+        self.sessions_started = 0
+        self.push_results: list[dict[str, Any]] = []
+        self._stop = threading.Event()
+        self._last_seq: int | None = None
+        self._last_status_line = ""
+
+    # -- lifecycle ----------------------------------------------------------------------------
+    def _new_detector(self, rate_hz: float) -> StillDetector:
+        s = self.cfg.still
+        return StillDetector(StillConfig(int(max(8, s["window_s"] * rate_hz)), s["gyro_std_dps"],
+                                         s["accel_tol_g"]))
+
+    def _driver_cfg(self) -> dict[str, Any]:
+        """The drivers' config mapping from the daemon's ``link`` section."""
+        c = self.link_cfg
+        backoff = {"backoff_max_s": float(c.get("reconnect_max_s", 5.0))}
+        if c["kind"] == "can":
+            return {"kind": "can", "bus": dict(c["can"]), **backoff}
+        return {"kind": "serial", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **backoff}
+
+    def open(self, wait: bool = True) -> None:
+        """Open the link (``wait=False``: keep retrying in the background if the device is absent)."""
+        self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
+                              where=f"{self.cfg.source}: link", start=False)
+        self.link.start(wait=wait)
+        self.control = ControlServer(self.cfg.control_socket, self._on_command)
+        self.control.start()
+        log.info("control socket %s; state directory %s", self.cfg.control_socket, self.cfg.state_dir)
+        self.notifier.ready()
+        self.notifier.status("waiting for the unit's HELLO")
+
+    def close(self) -> None:
+        self.notifier.stopping()
+        if self.control is not None:
+            self.control.stop()
+        if self.link is not None:
+            self.link.stop()
+        log.info("stopped")
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def install_signals(self) -> None:
+        signal.signal(signal.SIGTERM, lambda *_: self.stop())
+        signal.signal(signal.SIGINT, lambda *_: self.stop())
+        signal.signal(signal.SIGHUP, lambda *_: self.inbox.put(("reload",)))
+        signal.signal(signal.SIGUSR1, lambda *_: self.inbox.put(("cmd", {"cmd": "recalibrate"}, None)))
+
+    # -- callbacks from other threads ---------------------------------------------------------
+    def _on_control(self, msg: Any) -> None:
+        self.inbox.put(("msg", msg))
+
+    def _on_event(self, name: str, detail: str = "") -> None:
+        self.inbox.put(("event", name, detail))
+
+    def _on_command(self, request: dict[str, Any]) -> dict[str, Any]:
+        if request.get("cmd") == "status":
+            return {"ok": True, **self.status}
+        reply = Reply()
+        self.inbox.put(("cmd", request, reply))
+        if not reply.event.wait(10.0):
+            return {"ok": False, "error": "the engine loop did not answer within 10 s"}
+        return reply.value
+
+    # -- the loop -----------------------------------------------------------------------------
+    def run(self, until: Any = None, timeout_s: float | None = None) -> None:
+        """Run the loop until stop(), ``until(engine)`` is true, or ``timeout_s`` passes."""
+        interval = self.notifier.watchdog_interval_s() if self.cfg.watchdog else None
+        next_ping = 0.0
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self._stop.is_set():
+            now = time.monotonic()
+            self._drain_inbox(now)
+            block = self.ring.pop(8192)
+            if block.size:
+                self._on_samples(block, now)
+            if self.session is not None:
+                self.session.tick(now)
+            self._publish(now)
+            if interval is not None and now >= next_ping:
+                self.notifier.watchdog()
+                next_ping = now + interval
+            if until is not None and until(self):
+                break
+            if deadline is not None and now > deadline:
+                break
+            if block.size < 64:
+                time.sleep(0.002)
+
+    def _drain_inbox(self, now: float) -> None:
+        while True:
+            try:
+                item = self.inbox.get_nowait()
+            except queue.Empty:
+                return
+            kind = item[0]
+            if kind == "msg":
+                self._on_message(item[1], now)
+            elif kind == "event":
+                self._on_link_event(item[1], item[2], now)
+            elif kind == "cmd":
+                value = self._command(item[1], now)
+                if item[2] is not None:
+                    item[2].value = value
+                    item[2].event.set()
+            elif kind == "reload":
+                self._reload()
+
+    def _on_message(self, msg: Any, now: float) -> None:
+        if isinstance(msg, Hello):
+            log.info("HELLO from unit %d (firmware %s, boot %d): switch-on, new session",
+                     msg.serial, msg.fw_version, msg.boot_count)
+            self.last_hello = msg
+            self._start_session(msg, now)
+            return
+        if self.session is not None:
+            self.session.on_message(msg, now)
+
+    def _on_link_event(self, name: str, detail: str, now: float) -> None:
+        log.warning("link %s %s", name, detail)
+        if name == "link_up" and self.session is not None:
+            # the unit may have kept running or rebooted: re-read what it holds; a HELLO or a
+            # sequence reset will start a new session if it rebooted
+            self.session.applied = None
+            self.session._request_read(now)
+
+    def _start_session(self, hello: Hello, now: float) -> None:
+        prior = self.store.latest(hello.serial, acked_only=True)
+        learner = make_learner(self.cfg, prior)
+        rate = self.rate_hz or 1000.0
+        self.detector = self._new_detector(rate)
+        self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
+                               warm_started_from=None if prior is None else prior.version)
+        self.sessions_started += 1
+        if prior is not None:
+            log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
+
+    def _on_samples(self, block: np.ndarray, now: float) -> None:
+        fields = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp")
+        finite = np.all(np.column_stack([np.isfinite(block[f]) for f in fields]), axis=1)
+        if not finite.all():
+            self.dropped_nonfinite += int((~finite).sum())
+            block = block[finite]
+            if block.size == 0:
+                return
+        if block.size > 8:
+            dt = np.median(np.diff(block["t"]))
+            if dt > 0:
+                self.rate_hz = 1.0 / dt
+        seq = block["seq"].astype(np.int64)
+        if self._last_seq is not None and seq[0] + 1000 < self._last_seq and self.last_hello is not None:
+            log.warning("sample sequence went back (%d -> %d): the unit restarted", self._last_seq, seq[0])
+            self._start_session(self.last_hello, now)
+        self._last_seq = int(seq[-1])
+        if self.session is None:
+            self.samples_before_hello += block.size
+            return
+        decided, still = self.detector.feed(block)
+        self.session.feed(decided, still, now)
+
+    # -- commands -----------------------------------------------------------------------------
+    def _command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
+        cmd = req.get("cmd")
+        try:
+            if cmd == "recalibrate":
+                if self.last_hello is None:
+                    return {"ok": False, "error": "no unit has announced itself (HELLO) yet"}
+                self._start_session(self.last_hello, now)
+                return {"ok": True, "message": "new calibration session started"}
+            if cmd in ("rollback", "push"):
+                return self._push_command(req, now)
+        except Exception as err:  # a bad command must not stop the loop
+            log.exception("command %r failed", cmd)
+            return {"ok": False, "error": str(err)}
+        return {"ok": False, "error": f"unknown command {cmd!r}; use status, recalibrate, rollback, push"}
+
+    def _push_command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
+        s = self.session
+        if s is None:
+            return {"ok": False, "error": "no unit session yet; wait for the unit's HELLO"}
+        if s.state is State.PUSHING:
+            return {"ok": False, "error": "a push is already under way; try again in a few seconds"}
+        serial = s.hello.serial
+        if req["cmd"] == "rollback":
+            target = req.get("to")
+            history = [r for r in self.store.history(serial) if r.push.get("status") == "acked"]
+            if target is None:
+                current = s.applied.version if s.applied is not None else None
+                older = [r for r in history if current is None or r.version < current]
+                if not older:
+                    return {"ok": False, "error": "no earlier acked calibration to roll back to"}
+                rec = older[-1]
+            else:
+                rec = self.store.get(serial, int(target))
+                if rec is None:
+                    return {"ok": False, "error": f"unit {serial} has no calibration v{target}"}
+            s.start_push(rec.version, list(rec.terms), np.asarray(rec.coefficients_dps), now)
+            return {"ok": True, "message": f"pushing v{rec.version}", "version": rec.version}
+        from gyrocal.daemon.store import CalibrationRecord
+
+        terms = [str(t) for t in req["terms"]]
+        coeffs = np.asarray(req["coefficients"], dtype=np.float64)
+        if coeffs.shape != (3, len(terms)) or not np.all(np.isfinite(coeffs)):
+            return {"ok": False, "error": f"coefficients must be 3 finite rows of {len(terms)} numbers"}
+        rec = self.store.add(CalibrationRecord(
+            serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
+            uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
+            created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            session={"boot_count": s.hello.boot_count}, push={"status": "pending"}))
+        s.start_push(rec.version, terms, coeffs, now)
+        return {"ok": True, "message": f"pushing v{rec.version}", "version": rec.version}
+
+    def _reload(self) -> None:
+        self.notifier.reloading()
+        if self.cfg.source.startswith("<"):
+            log.info("SIGHUP: no config file to reload")
+        else:
+            try:
+                new = load_config(self.cfg.source)
+            except Exception as err:  # a broken edit must not kill a running daemon
+                log.error("SIGHUP: config not reloaded: %s", err)
+            else:
+                if new.link != self.cfg.link:
+                    log.warning("SIGHUP: link settings changed; they take effect at the next restart")
+                for section in ("validation", "push", "monitor", "still", "estimator"):
+                    setattr(self.cfg, section, getattr(new, section))
+                log.info("SIGHUP: configuration reloaded from %s", self.cfg.source)
+        self.notifier.ready()
+
+    # -- status -------------------------------------------------------------------------------
+    def _publish(self, now: float) -> None:
+        link_stats = self.link.stats() if self.link is not None else {}
+        ring = {"pushed": self.ring.pushed, "popped": self.ring.popped, "lost": self.ring.lost}
+        if self.session is None:
+            waiting = ("waiting for the unit's HELLO: no frame received yet" if not link_stats.get("frames")
+                       else f"waiting for the unit's HELLO: {self.samples_before_hello} samples received "
+                            "without one; power-cycle the unit or check its firmware")
+            status = {"state": "WAIT_HELLO", "reason": waiting}
+        else:
+            status = self.session.status()
+        status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
+                       "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
+                       "sessions": self.sessions_started, "config": self.cfg.source,
+                       "rate_hz": self.rate_hz})
+        self.status = status
+        line = f"{status['state']}: {status.get('reason', '')}"
+        if line != self._last_status_line:
+            self._last_status_line = line
+            self.notifier.status(line)
+            log.info("%s", line)

@@ -1,0 +1,329 @@
+"""One calibration session of one unit: from its switch-on to the pushed, monitored set.
+
+    WAIT_HELLO -> COLLECTING -> CONVERGED -> VALIDATING -> PUSHING -> APPLIED -> MONITORING
+
+- COLLECTING: still samples train the estimator, except held-out blocks (see blocks.py).
+- CONVERGED: the estimator says so and every direction the data must determine is determined.
+- VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
+  ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged.
+- PUSHING: push.py's transaction (write, matching ack, read back, retries).
+- APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows.
+
+The unit compensates its own output with the set it holds, so the daemon reconstructs the raw rate
+as ``raw = out + C_applied @ phi`` before learning: the estimator always learns the unit's total
+drift, and a new set replaces the old one rather than stacking on it. The applied set is read from
+the unit (COEFF_READ) at the start of every session, never assumed.
+
+Pure logic: the engine owns threads and I/O, and hands in ``send``, ``now`` and the store.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+
+from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
+from gyrocal.daemon.learner import Learner
+from gyrocal.daemon.push import PushTransaction
+from gyrocal.model.terms import TermSpec
+from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello
+from gyrocal.protocol.termsets import names_for, terms_id
+
+log = logging.getLogger("gyrocal.session")
+
+
+class State(enum.Enum):
+    WAIT_HELLO = "WAIT_HELLO"
+    COLLECTING = "COLLECTING"
+    CONVERGED = "CONVERGED"
+    VALIDATING = "VALIDATING"
+    PUSHING = "PUSHING"
+    APPLIED = "APPLIED"
+    MONITORING = "MONITORING"
+
+
+@dataclass
+class AppliedSet:
+    """The coefficient set the unit holds, as it reported it."""
+
+    version: int
+    terms_id: int
+    names: tuple[str, ...]
+    coeffs_dps: np.ndarray  # (3, P) deg/s per term unit
+
+    def compensation(self, cols: dict[str, np.ndarray]) -> np.ndarray:
+        """What the unit subtracts from its output, (N, 3) [deg/s]."""
+        if not self.names or not np.any(self.coeffs_dps):
+            return np.zeros((cols["t"].shape[0], 3))
+        return TermSpec.parse(self.names).design(cols) @ self.coeffs_dps.T
+
+    @classmethod
+    def from_report(cls, msg: CoeffReport) -> AppliedSet:
+        coeffs = np.asarray(msg.coeffs_dps, dtype=np.float64).reshape(3, -1)
+        names = names_for(msg.terms_id) or ()
+        if coeffs.size and len(names) != coeffs.shape[1]:
+            names = ()
+        return cls(msg.version, msg.terms_id, tuple(names), coeffs)
+
+
+def finite_or_none(a: np.ndarray) -> list[Any]:
+    """A nested list for JSON, with NaN and Inf (an undetermined coefficient) as None."""
+    return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
+
+
+def utc_now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+class Session:
+    """The state machine of one switch-on. See the module docstring."""
+
+    CHECK_EVERY_S = 0.25
+
+    def __init__(
+        self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
+        now: float, rate_hz: float, warm_started_from: int | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.hello = hello
+        self.learner = learner
+        self.store = store
+        self.send = send
+        self.names = list(learner.names)
+        self.spec = TermSpec.parse(self.names)
+        self.terms_id = terms_id(self.names)
+        self.warm_started_from = warm_started_from
+        self.state = State.COLLECTING
+        self.applied: AppliedSet | None = None
+        self.started = now
+        self.rate_hz = rate_hz
+        block = int(round(cfg.validation["block_s"] * rate_hz))
+        self.acc = BlockAccumulator(block, cfg.validation["holdout_every"], len(self.names))
+        self.holdout = BlockWindow(512)
+        monitor_blocks = int(cfg.monitor["window_s"] / cfg.validation["block_s"])
+        self.monitor = BlockWindow(max(4, monitor_blocks))
+        self.push: PushTransaction | None = None
+        self.pending_version: int | None = None
+        self.validated_rms: np.ndarray | None = None
+        self.last_validation: dict[str, Any] = {}
+        self.last_push: dict[str, Any] = {}
+        self.alarm = False
+        self.reason = "reading the set the unit holds (COEFF_READ)"
+        self.samples = 0
+        self.still_samples = 0
+        self._t0_unit: float | None = None
+        self._next_check = now
+        self._next_validation_at = 0
+        self._read_deadline = now
+        self._request_read(now)
+
+    # -- messages from the unit -------------------------------------------------------------
+    def _request_read(self, now: float) -> None:
+        self._read_deadline = now + self.cfg.push["ack_timeout_s"]
+        self.send(CoeffRead())
+
+    def on_message(self, msg: Any, now: float) -> None:
+        if self.push is not None and self.push.on_message(msg, now):
+            self._after_push(now)
+            return
+        if isinstance(msg, CoeffReport):
+            applied = AppliedSet.from_report(msg)
+            if self.applied is None:
+                log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
+                         applied.version, applied.terms_id)
+                self.reason = "collecting still samples"
+            self.applied = applied
+
+    # -- samples ------------------------------------------------------------------------------
+    def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
+        """Learn from decided samples (SAMPLE_DTYPE) with their still flags."""
+        self.samples += samples.size
+        if samples.size == 0 or self.applied is None:
+            return
+        if self._t0_unit is None:
+            self._t0_unit = float(samples["t"][0])
+        cols = {
+            "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
+            "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
+        }
+        out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
+        raw = out + self.applied.compensation(cols)
+        phi = self.spec.design(cols)
+        blocks, train = self.acc.feed(raw, out, phi, still)
+        self.still_samples += int(still.sum())
+        if train.any() and self.state is not State.PUSHING:
+            self.learner.update_many(phi[train], raw[train])
+        self.holdout.add([b for b in blocks if b.holdout])
+        self.monitor.add(blocks)
+
+    # -- time ---------------------------------------------------------------------------------
+    def tick(self, now: float) -> None:
+        if self.applied is None:
+            if now >= self._read_deadline:
+                log.warning("unit %s did not answer COEFF_READ; asking again", self.hello.serial)
+                self._request_read(now)
+            return
+        if self.push is not None:
+            self.push.tick(now)
+            if self.push.finished:
+                self._after_push(now)
+            return
+        if now < self._next_check:
+            return
+        self._next_check = now + self.CHECK_EVERY_S
+        if self.state in (State.COLLECTING, State.CONVERGED):
+            self._check_convergence(now)
+        elif self.state is State.MONITORING:
+            self._check_alarm()
+            self._check_convergence(now)
+
+    def _check_convergence(self, now: float) -> None:
+        """COLLECTING -> CONVERGED -> VALIDATING; in MONITORING, re-validate as evidence grows."""
+        monitoring = self.state is State.MONITORING
+        ok, why = self.learner.converged
+        if not ok:
+            if not monitoring:
+                self.state, self.reason = State.COLLECTING, why
+            return
+        if self.learner.samples < self._next_validation_at:
+            if not monitoring:
+                self.reason = "validation failed before; collecting more samples"
+            return
+        if self.state is State.COLLECTING:
+            log.info("unit %s: estimator %s", self.hello.serial, why)
+        need = self.cfg.validation["min_holdout_blocks"]
+        if not monitoring:
+            self.state = State.CONVERGED
+        if len(self.holdout) < need:
+            if not monitoring:
+                self.reason = f"converged; waiting for held-out blocks ({len(self.holdout)}/{need})"
+            return
+        self._validate(now)
+
+    def _validate(self, now: float) -> None:
+        self.state = State.VALIDATING
+        coeffs = self.learner.coefficients
+        rms_old = self.holdout.rms_out()
+        rms_new = self.holdout.rms_with(coeffs)
+        old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
+        need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
+        self.last_validation = {
+            "blocks": len(self.holdout),
+            "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
+            "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
+        }
+        if not new2 <= need * old2:
+            self.reason = (
+                f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough on "
+                f"the current {np.sqrt(old2):.3g} deg/s; not pushing"
+            )
+            log.warning("unit %s: %s", self.hello.serial, self.reason)
+            self.last_validation["passed"] = False
+            self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
+            return
+        self.last_validation["passed"] = True
+        self.validated_rms = rms_new
+        record = self._record(coeffs, now)
+        self.start_push(record["version"], self.names, coeffs, now)
+
+    def _record(self, coeffs: np.ndarray, now: float) -> dict[str, Any]:
+        from gyrocal.daemon.store import CalibrationRecord
+
+        rec = CalibrationRecord(
+            serial=self.hello.serial, version=0, terms=list(self.names),
+            coefficients_dps=coeffs.tolist(), uncertainty_dps=finite_or_none(self.learner.uncertainty),
+            identifiable=self.learner.identifiable(),
+            stats={"samples": self.samples, "still_samples": self.still_samples,
+                   "trained_samples": self.learner.samples, "validation": self.last_validation,
+                   "warm_started_from": self.warm_started_from},
+            created_utc=utc_now(),
+            session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
+            push={"status": "pending"},
+        )
+        rec = self.store.add(rec)
+        return {"version": rec.version}
+
+    # -- push ---------------------------------------------------------------------------------
+    def start_push(self, version: int, names: list[str], coeffs: np.ndarray, now: float) -> None:
+        """Push a set (a validated one, a rollback or a file); the unit applies it whole or not."""
+        coeffs = np.asarray(coeffs, dtype=np.float64)
+        write = CoeffWrite(version, terms_id(names), tuple(tuple(map(float, r)) for r in coeffs))
+        self.pending_version = version
+        self._pending = (names, coeffs)
+        self.state = State.PUSHING
+        self.reason = f"pushing v{version}"
+        self.push = PushTransaction(write, self.send, now, self.cfg.push["ack_timeout_s"],
+                                    self.cfg.push["retries"])
+
+    def _after_push(self, now: float) -> None:
+        if self.push is None or not self.push.finished:
+            return
+        result = self.push.result
+        if result is None:
+            return
+        version = self.push.write.version
+        self.push = None
+        self.last_push = {"version": version, **result.as_dict(), "utc": utc_now()}
+        try:
+            self.store.update_push(self.hello.serial, version, self.last_push)
+        except Exception as err:  # the store must never take the session down with it
+            log.error("store: cannot record the push result of v%d: %s", version, err)
+        if result.status == "acked":
+            names, coeffs = self._pending
+            self.applied = AppliedSet(version, terms_id(names), tuple(names), coeffs)
+            self.state = State.APPLIED
+            log.info("unit %s: v%d applied and read back", self.hello.serial, version)
+            self.monitor.clear()
+            self.holdout.clear()
+            self.state = State.MONITORING
+            self.reason = f"monitoring v{version}"
+            self._next_validation_at = 2 * self.learner.samples + 1
+        else:
+            self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
+            self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            self.state = State.COLLECTING
+            self.applied = None  # read back what the unit holds rather than assume it
+            self._request_read(now)
+
+    def _check_alarm(self) -> None:
+        if self.validated_rms is None or len(self.monitor) < 4:
+            return
+        rms = self.monitor.rms_out()
+        limit = np.maximum(self.validated_rms * self.cfg.monitor["alarm_ratio"],
+                           self.cfg.monitor["alarm_floor_dps"])
+        alarm = bool(np.any(rms > limit))
+        if alarm and not self.alarm:
+            log.warning("unit %s: drift alarm: residual %s deg/s exceeds %s", self.hello.serial,
+                        np.round(rms, 6).tolist(), np.round(limit, 6).tolist())
+        self.alarm = alarm
+
+    # -- status -------------------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        ok, why = self.learner.converged
+        return {
+            "state": self.state.value,
+            "reason": self.reason,
+            "unit": {"serial": self.hello.serial, "boot_count": self.hello.boot_count,
+                     "fw": self.hello.fw_version},
+            "applied": None if self.applied is None else {
+                "version": self.applied.version, "terms_id": self.applied.terms_id},
+            "samples": self.samples, "still_samples": self.still_samples,
+            "trained_samples": self.learner.samples,
+            "terms": self.names,
+            "coefficients_dps": finite_or_none(self.learner.coefficients),
+            "uncertainty_dps": finite_or_none(self.learner.uncertainty),
+            "identifiable": self.learner.identifiable(),
+            "converged": ok, "converged_reason": why,
+            "validation": self.last_validation,
+            "monitor_rms_dps": dict(zip("xyz", finite_or_none(self.monitor.rms_out())[0], strict=True)),
+            "alarm": self.alarm,
+            "last_push": self.last_push,
+            "warm_started_from": self.warm_started_from,
+        }

@@ -1,0 +1,1 @@
+"""Loaders that turn shipped real datasets into Contract 1 logs (``LogData``)."""

@@ -1,0 +1,291 @@
+"""CanDecoder: CAN frames in, messages out, reassembling samples, HELLO and coefficient transfers.
+
+Like the serial FrameDecoder it is pure (no bus, no threads) and counts everything it rejects in a
+DecoderStats. On CAN the bus already checks each frame with its own CRC-15, so the errors here are
+lost or repeated parts: a SAMPLE whose A, B or C frame is missing, a coefficient chunk missing or
+sent twice, a commit whose CRC-32 does not match what arrived. State is bounded: at most four partial
+samples, one HELLO, one transfer in each direction.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import can
+
+from gyrocal.errors import ProtocolError
+from gyrocal.protocol.messages import (
+    ACCEL_PER_G_CAN,
+    GYRO_PER_DPS,
+    MAX_TERMS,
+    TEMP_PER_C,
+    US_PER_S,
+    CoeffAck,
+    CoeffNak,
+    CoeffRead,
+    CoeffReport,
+    CoeffTransferFailed,
+    CoeffWrite,
+    Hello,
+    NakReason,
+    Sample,
+    coeff_set_crc,
+)
+from gyrocal.protocol.stats import DecoderStats
+
+if TYPE_CHECKING:
+    from gyrocal.protocol.can_codec import CanCodec
+
+T20 = 1 << 20
+MAX_PARTIALS = 4
+"""Partial samples held at once; the oldest is dropped (and counted) beyond this."""
+MAX_AGE = 6
+"""A partial sample older than this many sample frames can no longer complete."""
+
+
+@dataclass
+class _Transfer:
+    """A coefficient set being received: 6*n 32-bit words, each expected exactly once."""
+
+    version: int
+    terms_id: int
+    n: int
+    words: list[int | None] = field(default_factory=list)
+    broken: bool = False
+
+    def add(self, chunk: int, word: int) -> None:
+        if chunk >= len(self.words) or self.words[chunk] is not None:
+            self.broken = True  # out of range or duplicated
+        else:
+            self.words[chunk] = word
+
+    def complete(self) -> bool:
+        return not self.broken and all(w is not None for w in self.words)
+
+
+class CanDecoder:
+    """``feed(can.Message) -> list of messages`` for one node id; counters in ``.stats``.
+
+    stats.frames counts CAN frames accepted, stats.bytes their data bytes. On the unit side a failed
+    COEFF_COMMIT yields a CoeffTransferFailed, which the unit answers with a CoeffNak.
+    """
+
+    def __init__(self, codec: CanCodec | None = None, node_id: int = 0) -> None:
+        if codec is None:
+            from gyrocal.protocol.can_codec import CanCodec
+
+            codec = CanCodec(node_id=node_id)
+        self.node_id = codec.node_id
+        self.stats = DecoderStats()
+        self._by_id: dict[int, tuple[Any, Any]] = {
+            codec.ids[name]: (getattr(self, f"_on_{name.lower()}"), codec.by_name[name]) for name in codec.ids
+        }
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget partial messages and seq/time state (e.g. after the bus reopened); keep counters."""
+        self._partials: dict[int, list[Any]] = {}
+        self._tick = 0
+        self._anchor: tuple[int, int] | None = None
+        self._last_seq: int | None = None
+        self._last_t_us = 0
+        self._dt_us = 0
+        self._hello: dict[str, int] | None = None
+        self._write: _Transfer | None = None
+        self._report: _Transfer | None = None
+
+    def feed(self, frame: can.Message) -> list[object]:
+        """Accept one received CAN frame; return the messages it completes (usually none or one)."""
+        st = self.stats
+        entry = self._by_id.get(frame.arbitration_id)
+        if entry is None or frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
+            fid = frame.arbitration_id
+            if not frame.is_extended_id and 0x100 <= fid < 0x200 and fid & 0xF == self.node_id:
+                st.unknown_types += 1
+                st.garbage_bytes += len(frame.data)
+            else:
+                st.foreign_frames += 1
+            return []
+        handler, message = entry
+        data = bytes(frame.data)
+        st.bytes += len(data)
+        if len(data) != message.length:
+            st.length_errors += 1
+            return []
+        st.frames += 1
+        return handler(message.decode_simple(data, decode_choices=False, scaling=False))
+
+    # -- samples -------------------------------------------------------------------------------
+    def _on_sample_time(self, raw: dict[str, int]) -> list[object]:
+        self._anchor = (raw["SEQ"], raw["T_US"])
+        return []
+
+    def _part(self, key: int, slot: int, value: tuple[int, ...]) -> list[object]:
+        self._tick += 1
+        parts = self._partials.get(key)
+        if parts is not None and self._tick - parts[3] > MAX_AGE:
+            self._drop_partial(key)  # too old to belong to this sample: it can never complete
+            parts = None
+        if parts is not None and parts[slot] is not None:
+            if parts[slot] == value:
+                return []  # the same frame twice: ignore the copy
+            self._drop_partial(key)  # a different part in a filled slot: the old partial is dead
+            parts = None
+        if parts is None:
+            for old in [k for k, p in self._partials.items() if self._tick - p[3] > MAX_AGE]:
+                self._drop_partial(old)
+            parts = self._partials[key] = [None, None, None, self._tick]
+            while len(self._partials) > MAX_PARTIALS:
+                self._drop_partial(next(iter(self._partials)))
+        parts[slot] = value
+        if parts[0] is None or parts[1] is None or parts[2] is None:
+            return []
+        del self._partials[key]
+        return self._complete(parts[0], parts[1], parts[2])
+
+    def _drop_partial(self, key: int) -> None:
+        del self._partials[key]
+        self.stats.incomplete += 1
+        self.stats.resyncs += 1
+
+    def _on_sample_a(self, raw: dict[str, int]) -> list[object]:
+        return self._part(raw["SEQ"] & 0xF, 0, (raw["SEQ"], raw["GYRO_X"], raw["TEMP"]))
+
+    def _on_sample_b(self, raw: dict[str, int]) -> list[object]:
+        return self._part(raw["SEQ4"], 1, (raw["T_HI"], raw["GYRO_Y"], raw["ACCEL_X"], raw["ACCEL_Y"]))
+
+    def _on_sample_c(self, raw: dict[str, int]) -> list[object]:
+        return self._part(raw["SEQ4"], 2, (raw["GYRO_Z"], raw["ACCEL_Z"], raw["T_LO"]))
+
+    def _complete(self, a: tuple[int, ...], b: tuple[int, ...], c: tuple[int, ...]) -> list[object]:
+        st = self.stats
+        seq16, gx, temp = a
+        t_hi, gy, ax, ay = b
+        gz, az, t_lo = c
+        t20 = (t_hi << 16) | t_lo
+        last = self._last_seq
+        if last is None:
+            seq = seq16  # the high bits start at 0 when this decoder starts (docs/protocol.md)
+        else:
+            d = (seq16 - last) & 0xFFFF
+            seq = (last + (d if d < 0x8000 else d - 0x10000)) & 0xFFFFFFFF
+        anchor = self._anchor
+        if anchor is not None and anchor[0] == seq16:
+            t_us = anchor[1]
+            self._anchor = None
+            if t_us & (T20 - 1) != t20:
+                st.incomplete += 1  # the anchor and the sample disagree: do not guess
+                st.resyncs += 1
+                return []
+        elif last is None:
+            st.unanchored += 1
+            return []
+        else:
+            steps = seq - last if seq >= last else seq - last + (1 << 32)
+            t_est = self._last_t_us + steps * self._dt_us
+            t_us = t_est + ((t20 - t_est + T20 // 2) % T20) - T20 // 2
+        if last is not None:
+            if seq != (last + 1) & 0xFFFFFFFF:
+                st.seq_gaps += 1
+                missing = (seq - last - 1) & 0xFFFFFFFF
+                if missing < 0x80000000:
+                    st.lost_samples += missing
+            elif t_us > self._last_t_us:
+                self._dt_us = t_us - self._last_t_us
+        self._last_seq = seq
+        self._last_t_us = t_us
+        return [Sample(seq, t_us / US_PER_S, (gx / GYRO_PER_DPS, gy / GYRO_PER_DPS, gz / GYRO_PER_DPS),
+                       (ax / ACCEL_PER_G_CAN, ay / ACCEL_PER_G_CAN, az / ACCEL_PER_G_CAN), temp / TEMP_PER_C)]
+
+    # -- HELLO ---------------------------------------------------------------------------------
+    def _on_hello(self, raw: dict[str, int]) -> list[object]:
+        if self._hello is not None:
+            self.stats.incomplete += 1
+        self._hello = raw
+        return []
+
+    def _on_hello_boot(self, raw: dict[str, int]) -> list[object]:
+        h, self._hello = self._hello, None
+        if h is None or h["SERIAL"] & 0xFFFF != raw["SERIAL_LO"]:
+            self.stats.incomplete += 1
+            return []
+        self.reset()  # a new switch-on: seq, time and partial transfers restart
+        return [Hello(h["SERIAL"], f"{h['FW_MAJOR']}.{h['FW_MINOR']}.{h['FW_PATCH']}", raw["BOOT_COUNT"],
+                      raw["RATE_HZ"])]
+
+    # -- single-frame control ------------------------------------------------------------------
+    def _on_coeff_ack(self, raw: dict[str, int]) -> list[object]:
+        return [CoeffAck(raw["CAL_VERSION"], raw["CRC"])]
+
+    def _on_coeff_nak(self, raw: dict[str, int]) -> list[object]:
+        code = raw["REASON"]
+        reason = NakReason(code) if code in NakReason._value2member_map_ else code
+        return [CoeffNak(raw["CAL_VERSION"], raw["CRC"], reason)]
+
+    def _on_coeff_read(self, raw: dict[str, int]) -> list[object]:
+        return [CoeffRead()]
+
+    # -- coefficient transfers -----------------------------------------------------------------
+    def _begin(self, old: _Transfer | None, raw: dict[str, int]) -> _Transfer:
+        if old is not None:
+            self.stats.incomplete += 1
+        n = raw["N_TERMS"]
+        t = _Transfer(raw["CAL_VERSION"], raw["TERMS_ID"], n, [None] * (6 * min(n, MAX_TERMS)))
+        if n > MAX_TERMS:
+            self.stats.length_errors += 1
+            t.broken = True
+        return t
+
+    def _data(self, t: _Transfer | None, raw: dict[str, int]) -> None:
+        if t is None or raw["CAL_VERSION_LO"] != t.version & 0xFFFF:
+            self.stats.incomplete += 1  # a stray chunk of no open transfer
+            return
+        t.add(raw["CHUNK"], raw["WORD"])
+
+    def _finish(self, t: _Transfer | None, raw: dict[str, int]) -> tuple[object | None, int]:
+        """(the set as CoeffWrite, 0) or (None, NakReason) for a commit closing transfer t."""
+        if t is None or t.version != raw["CAL_VERSION"] or not t.complete():
+            self.stats.incomplete += 1
+            return None, NakReason.INCOMPLETE
+        flat = struct.unpack(f"<{3 * t.n}d", struct.pack(f"<{6 * t.n}I", *t.words))
+        rows = (flat[: t.n], flat[t.n : 2 * t.n], flat[2 * t.n :])
+        try:
+            crc = coeff_set_crc(t.version, t.terms_id, rows)
+        except ProtocolError:
+            return None, NakReason.OUT_OF_RANGE
+        if crc != raw["CRC"]:
+            self.stats.crc_errors += 1
+            return None, NakReason.BAD_CRC
+        return CoeffWrite(t.version, t.terms_id, rows), 0
+
+    def _on_coeff_begin(self, raw: dict[str, int]) -> list[object]:
+        self._write = self._begin(self._write, raw)
+        return []
+
+    def _on_coeff_data(self, raw: dict[str, int]) -> list[object]:
+        self._data(self._write, raw)
+        return []
+
+    def _on_coeff_commit(self, raw: dict[str, int]) -> list[object]:
+        t, self._write = self._write, None
+        msg, reason = self._finish(t, raw)
+        if msg is None:
+            return [CoeffTransferFailed(raw["CAL_VERSION"], raw["CRC"], reason)]
+        return [msg]
+
+    def _on_report_begin(self, raw: dict[str, int]) -> list[object]:
+        self._report = self._begin(self._report, raw)
+        return []
+
+    def _on_report_data(self, raw: dict[str, int]) -> list[object]:
+        self._data(self._report, raw)
+        return []
+
+    def _on_report_end(self, raw: dict[str, int]) -> list[object]:
+        t, self._report = self._report, None
+        msg, _ = self._finish(t, raw)
+        if not isinstance(msg, CoeffWrite):
+            return []  # counted; the host times out and sends COEFF_READ again
+        return [CoeffReport(msg.version, msg.terms_id, msg.coeffs_dps)]

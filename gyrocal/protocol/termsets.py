@@ -1,0 +1,65 @@
+"""Term sets the unit knows, named on the wire by a 16-bit terms_id.
+
+A coefficient set only means something with its term list: coefficient k of an axis multiplies term
+k. Sending the names would cost a frame per term on CAN, so both sides hash the canonical list
+instead: terms_id = CRC-16/CCITT-FALSE (binascii.crc_hqx, init 0xFFFF) of the names, spaces removed,
+joined by "," and encoded as ASCII. The unit holds a table of the sets its firmware can evaluate and
+NAKs an unknown id with UNKNOWN_TERMS, so a host can never make it apply coefficients to the wrong
+terms.
+"""
+
+from __future__ import annotations
+
+import binascii
+from collections.abc import Iterable
+
+from gyrocal.errors import ProtocolError
+from gyrocal.model.terms import SEED000_TERMS
+
+EXTENDED_TEMP_TERMS: tuple[str, ...] = SEED000_TERMS + ("temp", "temp^2", "dtemp", "temp*dtemp")
+"""Seed 000's ten gravity terms plus temperature level [degC] and rate [degC/s] terms."""
+
+_REGISTRY: dict[int, tuple[str, ...]] = {}
+
+
+def canonical(names: Iterable[str]) -> tuple[str, ...]:
+    """Names with spaces removed, in the given order (order matters: it fixes coefficient order)."""
+    out = tuple(str(n).replace(" ", "") for n in names)
+    if not out or any(not n or "," in n for n in out):
+        raise ProtocolError(f"term names {out!r} must be non-empty and contain no commas")
+    return out
+
+
+def terms_id(names: Iterable[str]) -> int:
+    """The 16-bit id of a term list: CRC-16/CCITT-FALSE over the comma-joined canonical names."""
+    text = ",".join(canonical(names))
+    try:
+        data = text.encode("ascii")
+    except UnicodeEncodeError as err:
+        raise ProtocolError(f"term names {text!r} must be ASCII") from err
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def register(names: Iterable[str]) -> int:
+    """Add a term set to the registry and return its id; a hash collision raises ProtocolError."""
+    canon = canonical(names)
+    tid = terms_id(canon)
+    known = _REGISTRY.get(tid)
+    if known is not None and known != canon:
+        raise ProtocolError(f"terms_id 0x{tid:04X} of {canon!r} collides with {known!r}; rename a term")
+    _REGISTRY[tid] = canon
+    return tid
+
+
+def names_for(tid: int) -> tuple[str, ...] | None:
+    """The term names registered under tid, or None when the id is unknown."""
+    return _REGISTRY.get(tid)
+
+
+def known_ids() -> dict[int, tuple[str, ...]]:
+    """A copy of the registry (id -> names), e.g. for a unit's table or docs."""
+    return dict(_REGISTRY)
+
+
+SEED000_ID = register(SEED000_TERMS)
+EXTENDED_TEMP_ID = register(EXTENDED_TEMP_TERMS)

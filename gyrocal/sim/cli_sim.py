@@ -1,0 +1,174 @@
+"""``gyrocal sim``: the virtual strapdown unit on a pty or a python-can bus.
+
+The first line on stdout (flushed) is where the daemon finds the unit: the pty slave path for
+``--link pty``, or the bus arguments for ``--link can``. SIGUSR1 power-cycles the unit (a new
+session: HELLO, a new bias, seq from 0); SIGTERM and SIGINT stop it cleanly.
+
+Examples::
+
+    gyrocal sim --rate 200 --pty-link /tmp/gyro0 --status-json /tmp/sim.json
+    gyrocal sim --link can --can-interface udp_multicast --can-channel 239.74.163.2 --can-port 43113
+    gyrocal sim --duration 60 --record run.csv --seed 3        # run.csv + run.truth.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gyrocal.errors import ConfigError
+from gyrocal.sim.recorder import Recorder
+from gyrocal.sim.runner import Runner, write_json_atomic
+from gyrocal.sim.schedule import load_schedule, tumble
+from gyrocal.sim.truth import TruthModel
+from gyrocal.sim.unit import Faults, VirtualUnit
+
+log = logging.getLogger(__name__)
+
+MAX_RATE_HZ = 10_000.0
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--link", choices=("pty", "can"), default="pty", help="transport (default pty)")
+    p.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="samples per second (default 200)")
+    p.add_argument("--seed", type=int, default=0, help="truth seed: same seed, same output (default 0)")
+    p.add_argument("--serial", type=int, default=4242, help="unit serial number (default 4242)")
+    p.add_argument("--schedule", metavar="FILE.yaml", help="orientation schedule (default: 18-pose tumble)")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S",
+                   help="stop after S seconds worth of samples (0 = run until SIGTERM)")
+    p.add_argument("--power-cycle-every", type=float, default=0.0, metavar="S",
+                   help="power-cycle after S seconds of each session (0 = never)")
+    p.add_argument("--status-json", metavar="PATH", help="write the unit's status here (atomic, ~1 s)")
+    p.add_argument("--record", metavar="LOG.csv", help="record what was sent (+ LOG.truth.csv)")
+    p.add_argument("--flash", metavar="PATH", help="keep boot count and applied set in this JSON file")
+    p.add_argument("--pty-link", metavar="PATH", help="symlink PATH to the pty slave (a stable name)")
+    p.add_argument("--can-interface", default="udp_multicast",
+                   help="python-can interface (default udp_multicast)")
+    p.add_argument("--can-channel", default="239.74.163.2", help="CAN channel / multicast group")
+    p.add_argument("--can-port", type=int, help="udp_multicast UDP port (default python-can's 43113)")
+    p.add_argument("--can-config", metavar="JSON",
+                   help="can.Bus keyword arguments as JSON text or a .json file")
+    p.add_argument("--dbc", metavar="FILE.dbc", help="CAN database (default: the shipped one)")
+    f = p.add_argument_group("fault injection")
+    f.add_argument("--nak-next", type=int, default=0, metavar="N", help="NAK the next N coefficient writes")
+    f.add_argument("--drop-acks", type=int, default=0, metavar="N", help="ignore the next N writes silently")
+    f.add_argument("--never-hello", action="store_true", help="do not send HELLO at switch-on")
+    f.add_argument("--garbage-rate", type=float, default=0.0, metavar="P",
+                   help="probability per frame of random garbage bytes before it (pty only)")
+    p.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+
+
+def can_bus_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``can.Bus`` keyword arguments from ``--can-config`` or the ``--can-*`` options."""
+    if args.can_config:
+        text = args.can_config
+        where = "--can-config"
+        if not text.lstrip().startswith("{"):
+            where = text
+            try:
+                text = Path(text).read_text(encoding="utf-8")
+            except OSError as err:
+                raise ConfigError(f"--can-config {where}: cannot read it ({err.strerror})") from err
+        try:
+            kw = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"{where}: not valid JSON ({err.msg} at line {err.lineno} column {err.colno}); "
+                              'write e.g. {"interface": "virtual", "channel": "gyro"}') from err
+        if not isinstance(kw, dict) or "interface" not in kw:
+            raise ConfigError(f'{where}: must be a JSON object with an "interface" field')
+        return kw
+    kw: dict[str, Any] = {"interface": args.can_interface, "channel": args.can_channel}
+    if args.can_port is not None:
+        kw["port"] = args.can_port
+    return kw
+
+
+def _check(args: argparse.Namespace) -> None:
+    if not 0 < args.rate <= MAX_RATE_HZ:
+        raise ConfigError(f"--rate {args.rate:g}: must be in (0, {MAX_RATE_HZ:g}] samples/s")
+    for name in ("duration", "power_cycle_every"):
+        if getattr(args, name) < 0:
+            raise ConfigError(f"--{name.replace('_', '-')}: must be >= 0 s")
+    if not 0.0 <= args.garbage_rate <= 1.0:
+        raise ConfigError(f"--garbage-rate {args.garbage_rate:g}: must be a probability in [0, 1]")
+    if args.link == "can" and args.pty_link:
+        raise ConfigError("--pty-link only applies to --link pty")
+
+
+def _load_flash(unit: VirtualUnit, path: str | None) -> None:
+    if not path or not Path(path).exists():
+        return
+    try:
+        unit.load_flash(json.loads(Path(path).read_text(encoding="utf-8")))
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        msg = f"--flash {path}: cannot read the unit's flash state ({err}); delete the file"
+        raise ConfigError(msg) from err
+
+
+def main(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+                        format="gyrocal sim: %(levelname)s %(message)s")
+    if logging.getLogger().level > logging.INFO:  # a bus that failed to open warns again from __del__
+        logging.getLogger("can").setLevel(logging.ERROR)
+    _check(args)
+    schedule = load_schedule(args.schedule) if args.schedule else tumble()
+    faults = Faults(nak_next=args.nak_next, drop_acks=args.drop_acks, never_hello=args.never_hello,
+                    garbage_rate=args.garbage_rate)
+    unit = VirtualUnit(TruthModel(), schedule, args.rate, args.seed, args.serial, faults=faults)
+    _load_flash(unit, args.flash)
+    transport = _open_transport(args)
+    recorder = None
+    try:
+        print(transport.describe(), flush=True)
+        if args.record:
+            meta = {"source": "gyrocal sim", "serial": args.serial, "seed": args.seed, "rate_hz": args.rate,
+                    "sensor": "virtual strapdown unit"}
+            try:
+                recorder = Recorder(args.record, meta)
+            except OSError as err:
+                raise ConfigError(f"--record {args.record}: cannot write ({err.strerror})") from err
+        runner = Runner(unit, transport, duration_s=args.duration, status_path=args.status_json,
+                        power_cycle_every_s=args.power_cycle_every, recorder=recorder,
+                        info={"seed": args.seed})
+        _install_signals(runner)
+        runner.run()
+    finally:
+        transport.close()
+        if args.flash:
+            write_json_atomic(args.flash, unit.flash_state())
+    return 0
+
+
+def _open_transport(args: argparse.Namespace) -> Any:
+    from gyrocal.sim.transports import CanTransport, PtyTransport
+
+    if args.link == "pty":
+        return PtyTransport(args.pty_link, garbage_rate=args.garbage_rate,
+                            rng=np.random.default_rng([args.seed, 0x6A7B]))
+    return CanTransport(can_bus_kwargs(args), dbc_path=args.dbc)
+
+
+def _install_signals(runner: Runner) -> None:
+    def stop(signum: int, frame: object) -> None:
+        runner.request_stop()
+
+    def cycle(signum: int, frame: object) -> None:
+        runner.request_power_cycle()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    if hasattr(signal, "SIGUSR1"):
+        signal.signal(signal.SIGUSR1, cycle)
+
+
+if __name__ == "__main__":
+    from gyrocal.cli import main as cli_main
+
+    sys.exit(cli_main(["sim", *sys.argv[1:]]))

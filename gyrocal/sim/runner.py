@@ -1,0 +1,180 @@
+"""Run a virtual unit in real time on a transport: pace samples, answer the host, power-cycle.
+
+The sample clock is exact: sample i of a session carries seq i and unit time i / rate_hz, whatever
+the wall clock does. Wall time only decides *when* samples go out: every ``batch_s`` (a few ms) the
+runner sends all samples due since switch-on, so a 2 kHz unit sends ~8 samples every 4 ms, and a
+runner that fell behind catches up in larger batches (at most ``max_batch_s`` worth at once).
+
+Between batches the runner waits on the transport for host requests and answers them at once.
+``request_power_cycle`` and ``request_stop`` only set flags, so they are safe in signal handlers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+from gyrocal.sim.recorder import Recorder
+from gyrocal.sim.unit import VirtualUnit
+
+log = logging.getLogger(__name__)
+
+
+class Transport(Protocol):
+    kind: str
+    stats: dict[str, int]
+
+    def describe(self) -> str: ...
+    def send(self, msgs: list[Any]) -> None: ...
+    def flush(self) -> None: ...
+    def poll(self, timeout_s: float) -> list[Any]: ...
+    def close(self) -> None: ...
+
+    @property
+    def backlog_bytes(self) -> int: ...
+
+
+def write_json_atomic(path: str | Path, doc: dict[str, Any]) -> None:
+    """Write JSON to ``path`` via a temporary file and rename, so a reader never sees half a file."""
+    p = Path(path)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    os.replace(tmp, p)
+
+
+class Runner:
+    """Drives ``unit`` on ``transport`` until ``duration_s`` worth of samples is sent (0 = forever).
+
+    ``duration_s`` [s] counts samples, not wall time: the run ends after exactly
+    round(duration_s * rate_hz) samples (over all sessions), then serves requests for ``linger_s``
+    so the host can read the tail. ``power_cycle_every_s`` [s]: power-cycle after exactly this much
+unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = never).
+    ``status_path``: JSON status, rewritten on every state change and every ``status_every_s``.
+    """
+
+    def __init__(
+        self, unit: VirtualUnit, transport: Transport, *, duration_s: float = 0.0, batch_s: float = 0.004,
+        max_batch_s: float = 0.1, status_path: str | Path | None = None, status_every_s: float = 1.0,
+        power_cycle_every_s: float = 0.0, recorder: Recorder | None = None, linger_s: float = 0.5,
+        info: dict[str, Any] | None = None,
+    ) -> None:
+        self.unit, self.transport = unit, transport
+        self.total_samples = round(duration_s * unit.rate_hz) if duration_s > 0 else 0
+        self.batch_s, self.max_batch = batch_s, max(1, round(max_batch_s * unit.rate_hz))
+        self.status_path, self.status_every_s = status_path, status_every_s
+        self.session_samples = round(power_cycle_every_s * unit.rate_hz) if power_cycle_every_s > 0 else 0
+        self.recorder, self.linger_s = recorder, linger_s
+        self.info = dict(info or {})
+        self._cycle_requested = False
+        self._stop_requested = False
+        self._session_t0 = 0.0
+        self.replies_sent = 0
+        self.requests = 0
+
+    # ---- signal-safe requests ------------------------------------------------------------------
+    def request_power_cycle(self) -> None:
+        self._cycle_requested = True
+
+    def request_stop(self) -> None:
+        self._stop_requested = True
+
+    # ---- the loop ------------------------------------------------------------------------------
+    def run(self) -> int:
+        """Run until done or stopped; returns 0. Always closes the recorder and writes a final status."""
+        try:
+            self._power_on()
+            next_status = time.monotonic() + self.status_every_s
+            while not self._stop_requested:
+                now = time.monotonic()
+                if self._cycle_requested or (self.session_samples and
+                                             self.unit.session_index >= self.session_samples):
+                    self._cycle_requested = False
+                    self._power_on()
+                    continue
+                if self.total_samples and self.unit.samples_sent >= self.total_samples:
+                    self._linger()
+                    break
+                self._send_due(now)
+                self._serve(self._session_t0 + self.unit.session_index / self.unit.rate_hz, now)
+                if time.monotonic() >= next_status:
+                    self.write_status()
+                    next_status = time.monotonic() + self.status_every_s
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()
+            self.write_status(running=False)
+        return 0
+
+    def _power_on(self) -> None:
+        hello = self.unit.power_on()
+        self._session_t0 = time.monotonic()
+        self.transport.send(hello)
+        log.info("power on: boot %d", self.unit.boot_count)
+        self.write_status()
+
+    def _send_due(self, now: float) -> None:
+        due = int((now - self._session_t0) * self.unit.rate_hz) + 1 - self.unit.session_index
+        if self.total_samples:
+            due = min(due, self.total_samples - self.unit.samples_sent)
+        if self.session_samples:
+            due = min(due, self.session_samples - self.unit.session_index)
+        if due <= 0:
+            return
+        chunk = self.unit.render(min(due, self.max_batch))
+        self.transport.send(chunk.samples())
+        if self.recorder is not None:
+            self.recorder.write(chunk.columns)
+
+    def _serve(self, next_sample_at: float, now: float) -> None:
+        """Answer host requests until the next batch is due (at least ``batch_s`` from now)."""
+        deadline = max(next_sample_at, now + self.batch_s)
+        while True:
+            timeout = deadline - time.monotonic()
+            msgs = self.transport.poll(max(0.0, timeout))
+            if msgs:
+                self._answer(msgs)
+            if timeout <= 0 or self._stop_requested or self._cycle_requested:
+                return
+
+    def _answer(self, msgs: list[Any]) -> None:
+        before = self.unit.applied
+        for m in msgs:
+            self.requests += 1
+            replies = self.unit.handle(m)
+            if replies:
+                self.transport.send(replies)
+                self.replies_sent += len(replies)
+        if self.unit.applied is not before:
+            log.info("applied coefficient set version %s", self.unit.applied and self.unit.applied.version)
+            self.write_status()
+
+    def _linger(self) -> None:
+        end = time.monotonic() + self.linger_s
+        while not self._stop_requested and time.monotonic() < end:
+            msgs = self.transport.poll(min(0.05, max(0.0, end - time.monotonic())))
+            if msgs:
+                self._answer(msgs)
+
+    # ---- status --------------------------------------------------------------------------------
+    def status(self, running: bool = True) -> dict[str, Any]:
+        doc = self.unit.status()
+        doc.update(self.info)
+        doc.update(running=running, link=self.transport.kind, address=self.transport.describe(),
+                   transport=dict(self.transport.stats), backlog_bytes=self.transport.backlog_bytes,
+                   requests=self.requests, replies_sent=self.replies_sent, pid=os.getpid(),
+                   wall_time=time.time())
+        if self.recorder is not None:
+            doc.update(record=str(self.recorder.path), recorded_rows=self.recorder.rows)
+        return doc
+
+    def write_status(self, running: bool = True) -> None:
+        if self.status_path is None:
+            return
+        try:
+            write_json_atomic(self.status_path, self.status(running))
+        except OSError as err:
+            log.warning("cannot write status %s: %s", self.status_path, err)

@@ -1,0 +1,300 @@
+"""The control socket (JSON lines over a Unix socket) and the status/recalibrate/rollback/push CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import stat
+import tempfile
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from gyrocal.cli import main as cli_main
+from gyrocal.daemon.cli_control import load_coefficient_file
+from gyrocal.daemon.control import ControlServer, request
+from gyrocal.errors import ConfigError, GyrocalError
+
+TERMS = ["1", "gx", "gy", "gz"]
+
+
+@pytest.fixture
+def short_dir() -> Iterator[Path]:
+    """A short directory: AF_UNIX paths are limited to 107 bytes, and pytest's tmp_path can be long."""
+    d = Path(tempfile.mkdtemp(prefix="gc", dir="/tmp"))
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+class FakeDaemon:
+    """Records requests and answers like the daemon's handler would."""
+
+    def __init__(self) -> None:
+        self.requests: list[dict] = []
+
+    def __call__(self, req: dict) -> dict:
+        self.requests.append(req)
+        cmd = req.get("cmd")
+        if cmd == "status":
+            return {"ok": True, "state": "MONITORING", "reason": "v2 applied",
+                    "unit": {"serial": 1234, "boot_count": 3, "fw": "1.0"}, "applied": {"version": 2},
+                    "samples": 4200, "monitor_rms_dps": {"x": 0.001, "y": 0.002, "z": 0.003},
+                    "terms": TERMS, "coefficients_dps": [[0.1, 0.2, 0.3, 0.4]] * 3,
+                    "link": {"frames": 4300, "crc_errors": 1}, "last_push": {"version": 2, "status": "acked"}}
+        if cmd == "boom":
+            raise RuntimeError("handler blew up")
+        if cmd == "rollback" and req.get("to") == 99:
+            return {"ok": False, "error": "unit 1234 has no calibration v99"}
+        if cmd == "numpy":
+            np = pytest.importorskip("numpy")
+            return {"ok": True, "value": np.float64(1.5), "rows": np.eye(2)}
+        return {"ok": True, "message": f"did {cmd}", "version": req.get("to") or 3}
+
+
+@pytest.fixture
+def server(short_dir: Path) -> Iterator[tuple[ControlServer, FakeDaemon]]:
+    daemon = FakeDaemon()
+    srv = ControlServer(short_dir / "control.sock", daemon)
+    srv.start()
+    yield srv, daemon
+    srv.stop()
+
+
+def raw_exchange(path: Path, payload: bytes, answers: int) -> list[dict]:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(10)
+        s.connect(os.fspath(path))
+        s.sendall(payload)
+        buf = b""
+        while buf.count(b"\n") < answers:
+            chunk = s.recv(65536)
+            assert chunk, "server closed early"
+            buf += chunk
+    return [json.loads(line) for line in buf.splitlines()]
+
+
+# --- server ----------------------------------------------------------------------------------------
+
+def test_request_round_trip_and_socket_mode_0660(server) -> None:
+    srv, daemon = server
+    reply = request(srv.path, {"cmd": "recalibrate"})
+    assert reply == {"ok": True, "message": "did recalibrate", "version": 3}
+    assert daemon.requests == [{"cmd": "recalibrate"}]
+    assert stat.S_IMODE(os.stat(srv.path).st_mode) == 0o660
+
+
+def test_several_requests_on_one_connection_get_one_answer_each(server) -> None:
+    srv, _ = server
+    answers = raw_exchange(srv.path, b'{"cmd": "a"}\n\n{"cmd": "b"}\n', 2)
+    assert [a["message"] for a in answers] == ["did a", "did b"]
+
+
+def test_bad_json_and_non_objects_get_errors_and_the_server_keeps_serving(server) -> None:
+    srv, _ = server
+    bad, not_obj, good = raw_exchange(srv.path, b'{"cmd": stat\n[1, 2]\n{"cmd": "ok"}\n', 3)
+    assert bad["ok"] is False and "bad JSON" in bad["error"]
+    assert not_obj["ok"] is False and "JSON object" in not_obj["error"]
+    assert good == {"ok": True, "message": "did ok", "version": 3}
+    assert srv.errors == 2
+
+
+def test_handler_exception_is_answered_as_an_error_and_serving_continues(server) -> None:
+    srv, _ = server
+    reply = request(srv.path, {"cmd": "boom"})
+    assert reply == {"ok": False, "error": "RuntimeError: handler blew up"}
+    assert request(srv.path, {"cmd": "status"})["state"] == "MONITORING"
+
+
+def test_numpy_values_in_an_answer_are_serialised(server) -> None:
+    srv, _ = server
+    assert request(srv.path, {"cmd": "numpy"}) == {"ok": True, "value": 1.5, "rows": [[1.0, 0.0], [0.0, 1.0]]}
+
+
+def test_start_and_stop_are_idempotent_and_stop_removes_the_socket(short_dir: Path) -> None:
+    srv = ControlServer(short_dir / "c.sock", FakeDaemon())
+    srv.start()
+    srv.start()
+    assert srv.running and (short_dir / "c.sock").exists()
+    srv.stop()
+    srv.stop()
+    assert not srv.running and not (short_dir / "c.sock").exists()
+    srv.start()  # restartable
+    assert request(short_dir / "c.sock", {"cmd": "x"})["ok"] is True
+    srv.stop()
+
+
+def test_stale_socket_file_from_a_killed_daemon_is_replaced(short_dir: Path) -> None:
+    path = short_dir / "c.sock"
+    dead = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    dead.bind(os.fspath(path))
+    dead.close()  # the file stays, no one listens: what kill -9 leaves behind
+    assert path.exists()
+    with ControlServer(path, FakeDaemon()):
+        assert request(path, {"cmd": "x"})["ok"] is True
+
+
+def test_a_live_daemon_on_the_path_is_not_stolen(server) -> None:
+    srv, _ = server
+    with pytest.raises(GyrocalError, match="another gyrocal daemon is listening"):
+        ControlServer(srv.path, FakeDaemon()).start()
+    assert request(srv.path, {"cmd": "x"})["ok"] is True
+
+
+def test_a_regular_file_on_the_path_is_refused(short_dir: Path) -> None:
+    (short_dir / "c.sock").write_text("")
+    with pytest.raises(ConfigError, match="not a socket"):
+        ControlServer(short_dir / "c.sock", FakeDaemon()).start()
+
+
+def test_missing_socket_gives_the_one_line_hint(short_dir: Path) -> None:
+    path = short_dir / "none.sock"
+    with pytest.raises(GyrocalError) as err:
+        request(path, {"cmd": "status"})
+    assert str(err.value) == (f"no gyrocal daemon listening on {path}; start it with `gyrocal run` "
+                              "or pass --socket")
+
+
+def test_a_handler_that_hangs_gives_a_timeout_error_not_a_hang(short_dir: Path) -> None:
+    release = threading.Event()
+
+    def slow(req: dict) -> dict:
+        release.wait(10)
+        return {"ok": True}
+
+    with ControlServer(short_dir / "c.sock", slow) as srv:
+        with pytest.raises(GyrocalError, match="did not answer within 0.2 s"):
+            request(srv.path, {"cmd": "status"}, timeout=0.2)
+        release.set()
+
+
+def test_a_too_long_socket_path_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="at most 107"):
+        ControlServer(Path("/tmp/" + "x" * 120), FakeDaemon()).start()
+
+
+# --- CLI -------------------------------------------------------------------------------------------
+
+def test_cli_status_prints_state_samples_rms_coefficients_link_and_push(server, capsys) -> None:
+    srv, _ = server
+    assert cli_main(["status", "--socket", str(srv.path)]) == 0
+    out = capsys.readouterr().out
+    for text in ("MONITORING", "serial 1234", "v2", "4200", "x=0.001", "gx", "+2.0000e-01", "crc_errors=1",
+                 "status=acked"):
+        assert text in out
+
+
+def test_cli_status_json_is_the_daemons_answer(server, capsys) -> None:
+    srv, _ = server
+    assert cli_main(["status", "--json", "--socket", str(srv.path)]) == 0
+    assert json.loads(capsys.readouterr().out)["unit"]["serial"] == 1234
+
+
+def test_cli_socket_default_comes_from_gyrocal_socket_env(server, capsys, monkeypatch) -> None:
+    srv, daemon = server
+    monkeypatch.setenv("GYROCAL_SOCKET", str(srv.path))
+    assert cli_main(["recalibrate"]) == 0
+    assert daemon.requests == [{"cmd": "recalibrate"}]
+    assert "did recalibrate" in capsys.readouterr().out
+
+
+def test_cli_rollback_sends_the_version_and_exits_1_when_refused(server, capsys) -> None:
+    srv, daemon = server
+    assert cli_main(["rollback", "--socket", str(srv.path)]) == 0
+    assert cli_main(["rollback", "--to", "2", "--socket", str(srv.path)]) == 0
+    assert cli_main(["rollback", "--to", "99", "--socket", str(srv.path)]) == 1
+    assert daemon.requests == [{"cmd": "rollback", "to": None}, {"cmd": "rollback", "to": 2},
+                               {"cmd": "rollback", "to": 99}]
+    assert "no calibration v99" in capsys.readouterr().err
+
+
+def test_cli_rollback_rejects_a_bad_version_as_a_user_error(server) -> None:
+    srv, _ = server
+    with pytest.raises(SystemExit) as err:
+        cli_main(["rollback", "--to", "zero", "--socket", str(srv.path)])
+    assert err.value.code == 2
+
+
+def test_cli_without_a_daemon_exits_2_with_the_hint(short_dir: Path, capsys) -> None:
+    assert cli_main(["status", "--socket", str(short_dir / "none.sock")]) == 2
+    assert "no gyrocal daemon listening on" in capsys.readouterr().err
+
+
+def test_cli_push_yaml_sends_three_rows_in_term_order(server, tmp_path: Path) -> None:
+    srv, daemon = server
+    f = tmp_path / "set.yaml"
+    f.write_text("terms: ['1', gx, gy, gz]\ncoefficients:\n  x: [0.1, 0.2, 0.3, 0.4]\n"
+                 "  y: [1, 2, 3, 4]\n  z: [-1, -2, -3, -4.5]\n")
+    assert cli_main(["push", "--file", str(f), "--socket", str(srv.path)]) == 0
+    assert daemon.requests == [{"cmd": "push", "terms": TERMS, "source": str(f), "coefficients": [
+        [0.1, 0.2, 0.3, 0.4], [1.0, 2.0, 3.0, 4.0], [-1.0, -2.0, -3.0, -4.5]]}]
+
+
+def test_push_accepts_fit_output_and_store_records(tmp_path: Path) -> None:
+    fit = tmp_path / "fit.json"  # Contract 3
+    fit.write_text(json.dumps({"method": "rls", "terms": TERMS, "samples": 10,
+                               "coefficients": {"x": [0, 1, 2, 3], "y": [0, 1, 2, 3], "z": [0, 1, 2, 3]}}))
+    assert load_coefficient_file(fit)[1][2] == [0.0, 1.0, 2.0, 3.0]
+    rec = tmp_path / "v000001.json"  # a calibration store record
+    rec.write_text(json.dumps({"terms": TERMS, "coefficients_dps": [[0, 0, 0, 1]] * 3}))
+    assert load_coefficient_file(rec) == (TERMS, [[0.0, 0.0, 0.0, 1.0]] * 3)
+
+
+@pytest.mark.parametrize(("content", "suffix", "expected"), [
+    ("{not json", ".json", "not valid JSON"),
+    ("- 1\n- 2\n", ".yaml", "top level is list"),
+    ("coefficients: {x: [1], y: [1], z: [1]}\n", ".yaml", "field 'terms'"),
+    ("terms: ['1', 'gx^0']\ncoefficients: {x: [1, 2], y: [1, 2], z: [1, 2]}\n", ".yaml", "field 'terms'"),
+    ("terms: ['1', gx]\n", ".yaml", "field 'coefficients' is missing"),
+    ("terms: ['1', gx]\ncoefficients: {x: [1, 2], y: [1, 2]}\n", ".yaml", "lacks axes ['z']"),
+    ("terms: ['1', gx]\ncoefficients: {x: [1, 2], y: [1], z: [1, 2]}\n", ".yaml", "'coefficients.y' has 1"),
+    ("terms: ['1', gx]\ncoefficients: {x: [1, 2], y: [1, .nan], z: [1, 2]}\n", ".yaml",
+     "'coefficients.y[1]'"),
+    ("terms: ['1', gx]\ncoefficients: {x: [1, 2], y: [1, 'a'], z: [1, 2]}\n", ".yaml", "(term 'gx')"),
+])
+def test_push_file_errors_name_the_file_the_field_and_the_fix(tmp_path: Path, content: str, suffix: str,
+                                                              expected: str) -> None:
+    f = tmp_path / f"bad{suffix}"
+    f.write_text(content)
+    with pytest.raises(ConfigError) as err:
+        load_coefficient_file(f)
+    assert str(f) in str(err.value) and expected in str(err.value)
+
+
+def test_cli_push_missing_file_exits_2_naming_it(server, tmp_path: Path, capsys) -> None:
+    srv, daemon = server
+    missing = tmp_path / "nope.yaml"
+    assert cli_main(["push", "--file", str(missing), "--socket", str(srv.path)]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "fix:" in err
+    assert daemon.requests == []
+
+
+def test_default_socket_follows_env_then_the_first_live_socket(short_dir: Path, monkeypatch) -> None:
+    from gyrocal.daemon.control import DEFAULT_SOCKET, default_socket_path
+
+    monkeypatch.setenv("GYROCAL_SOCKET", "/x/y.sock")
+    assert default_socket_path() == Path("/x/y.sock")
+    monkeypatch.delenv("GYROCAL_SOCKET")
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(short_dir))
+    if not DEFAULT_SOCKET.exists():
+        assert default_socket_path() == DEFAULT_SOCKET  # nothing listens anywhere: the system path
+        (short_dir / "gyrocal").mkdir()
+        with ControlServer(short_dir / "gyrocal" / "control.sock", FakeDaemon()):
+            # a daemon started by hand, without /run/gyrocal, is found (config.py's fallback)
+            assert default_socket_path() == short_dir / "gyrocal" / "control.sock"
+
+
+def test_an_oversized_request_is_refused_without_unbounded_buffering(server, monkeypatch) -> None:
+    import gyrocal.daemon.control as control
+
+    srv, daemon = server
+    monkeypatch.setattr(control, "MAX_LINE_BYTES", 1000)
+    (reply,) = raw_exchange(srv.path, b"x" * 5000, 1)
+    assert reply["ok"] is False and "longer than 1000 bytes" in reply["error"]
+    assert daemon.requests == []
+    assert request(srv.path, {"cmd": "x"})["ok"] is True

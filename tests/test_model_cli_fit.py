@@ -1,0 +1,69 @@
+"""``gyrocal fit`` prints Contract 3 JSON; terms from --terms or a YAML terms file; user errors exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gyrocal.cli import main
+from gyrocal.errors import ConfigError
+from gyrocal.logformat import write_log
+from gyrocal.model.convergence import ConvergenceConfig
+from gyrocal.sim.schedule import tumble
+from gyrocal.sim.truth import SessionStream, TruthModel
+
+
+@pytest.fixture(scope="module")
+def log_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cols = SessionStream(TruthModel(), tumble(), 100.0, seed=2, boot=0).chunk(7200)
+    path = tmp_path_factory.mktemp("fit") / "sim.csv"
+    write_log(path, {k: cols[k] for k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")},
+              {"serial": "sim"})
+    return path
+
+
+@pytest.mark.parametrize("method", ["lms", "nlms", "rls", "batch"])
+def test_fit_json_has_the_contract_3_shape(
+    log_path: Path, method: str, capsys: pytest.CaptureFixture
+) -> None:
+    assert main(["fit", str(log_path), "--method", method, "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert {"method", "terms", "samples", "coefficients", "uncertainty", "identifiable", "rms"} <= set(res)
+    assert res["method"] == method and len(res["terms"]) == 10 and 3000 < res["samples"] < 7200
+    for key in ("coefficients", "uncertainty"):
+        assert set(res[key]) == {"x", "y", "z"} and all(len(v) == 10 for v in res[key].values())
+    assert res["identifiable"]["rank"] == 9
+    assert res["identifiable"]["undetermined"] == ["1 - gx^2 - gy^2 - gz^2"]
+    assert res["uncertainty"]["x"][0] is None and res["uncertainty"]["x"][1] > 0
+    assert all(0 < res["rms"][a] < 0.01 for a in "xyz")
+
+
+def test_fit_takes_a_terms_file_and_extra_terms(log_path: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture) -> None:
+    spec = tmp_path / "ext.yaml"
+    spec.write_text("terms: ['1', gx, gy, gz, temp, temp*dtemp]\n")
+    assert main(["fit", str(log_path), "--terms-file", str(spec), "--json", "--all-samples"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["terms"] == ["1", "gx", "gy", "gz", "temp", "temp*dtemp"] and res["samples"] == 7200
+    assert main(["fit", str(log_path), "--terms", "1", "gx", "gy", "gz"]) == 0
+    assert "rank 4 of 4" in capsys.readouterr().out
+
+
+def test_fit_user_errors_exit_2_with_one_line(log_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["fit", str(log_path), "--terms", "1", "pressure"]) == 2
+    assert "pressure" in capsys.readouterr().err
+
+
+def test_convergence_config_from_dict_names_file_field_and_fix() -> None:
+    cfg = ConvergenceConfig.from_dict({"window": 500, "max_sigma_dps": 1e-4}, source="d.yaml")
+    assert cfg.window == 500 and cfg.max_sigma_dps == 1e-4 and cfg.min_rank == ConvergenceConfig().min_rank
+    with pytest.raises(ConfigError, match=r"d.yaml: convergence.windw: unknown field; use one of window"):
+        ConvergenceConfig.from_dict({"windw": 5}, source="d.yaml")
+    with pytest.raises(ConfigError, match=r"convergence.window: 'x' is not an integer"):
+        ConvergenceConfig.from_dict({"window": "x"}, source="d.yaml")
+    with pytest.raises(ConfigError, match=r"max_error_ratio: -1 must be > 0"):
+        ConvergenceConfig.from_dict({"max_error_ratio": -1}, source="d.yaml")
+    assert np.isfinite(ConvergenceConfig.from_dict(None).max_change_dps)

@@ -1,0 +1,261 @@
+"""The calibration store: versioned history, atomic writes, and survival of kill -9 mid-write."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from gyrocal.daemon.store import CalibrationRecord, CalibrationStore
+from gyrocal.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+TERMS = ["1", "gx", "gy", "gz", "gx^2", "gy^2", "gz^2", "gx*gy", "gy*gz", "gx*gz"]
+
+
+def make_record(serial: int = 1234, version: int = 0, seed: int = 0, **kw) -> CalibrationRecord:
+    rng = random.Random(seed)
+    p = len(TERMS)
+    return CalibrationRecord(
+        serial=serial, version=version, terms=list(TERMS),
+        coefficients_dps=[[rng.uniform(-0.1, 0.1) for _ in range(p)] for _ in range(3)],
+        uncertainty_dps=[[rng.uniform(1e-5, 1e-4) for _ in range(p)] for _ in range(3)],
+        identifiable={"rank": 9, "undetermined": ["1 + gx^2 + gy^2 + gz^2"]},
+        stats={"samples": 1000 + seed, "rms_dps": {"x": 0.01, "y": 0.02, "z": 0.03}, "poses": 6},
+        session={"boot_count": 7, "fw": "1.2.3"}, **kw)
+
+
+def test_add_assigns_contiguous_versions_and_reads_back_after_reopen(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    recs = [store.add(make_record(seed=i)) for i in range(3)]
+    assert [r.version for r in recs] == [1, 2, 3]
+    assert store.next_version(1234) == 4
+    assert store.units() == [1234]
+    again = CalibrationStore(tmp_path)
+    assert [r.version for r in again.history(1234)] == [1, 2, 3]
+    assert again.get(1234, 2).coefficients_dps == recs[1].coefficients_dps
+    assert again.get(1234, 9) is None
+    files = sorted(p.name for p in (tmp_path / "units" / "1234").iterdir())
+    assert files == ["v000001.json", "v000002.json", "v000003.json"]
+
+
+def test_latest_acked_only_skips_failed_and_pending_pushes(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    for i in range(4):
+        store.add(make_record(seed=i))
+    store.update_push(1234, 2, {"status": "acked", "attempts": 1, "acked_crc": 0xBEEF, "readback_ok": True})
+    store.update_push(1234, 3, {"status": "nak", "attempts": 3})
+    assert store.latest(1234).version == 2
+    assert store.latest(1234, acked_only=False).version == 4
+    assert store.latest(999) is None
+    reopened = CalibrationStore(tmp_path)
+    assert reopened.latest(1234).push["acked_crc"] == 0xBEEF
+    assert reopened.get(1234, 3).push == {"status": "nak", "attempts": 3, "acked_crc": None,
+                                          "readback_ok": None, "time": None}
+
+
+def test_update_push_merges_keys_and_keeps_unknown_status(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    store.add(make_record(push={"status": "pending"}))
+    store.update_push(1234, 1, {"attempts": 2})
+    rec = store.update_push(1234, 1, {"status": "readback_timeout", "reasons": ["no report"]})
+    assert rec.push["attempts"] == 2 and rec.push["reasons"] == ["no report"]
+    assert CalibrationStore(tmp_path).get(1234, 1).push["status"] == "readback_timeout"
+    with pytest.raises(KeyError):
+        store.update_push(1234, 5, {"status": "acked"})
+    with pytest.raises(ValueError):
+        store.update_push(1234, 1, {"status": ""})
+
+
+def test_add_refuses_to_overwrite_an_existing_version(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    store.add(make_record())
+    with pytest.raises(ValueError, match="already has version 1"):
+        store.add(make_record(version=1))
+    assert store.add(make_record(version=5)).version == 5
+    assert store.next_version(1234) == 6
+
+
+def test_invalid_records_are_refused_before_anything_is_written(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    bad = make_record()
+    bad.coefficients_dps[1] = bad.coefficients_dps[1][:-1]
+    with pytest.raises(ValueError, match=r"coefficients_dps\[y\]"):
+        store.add(bad)
+    bad = make_record()
+    bad.coefficients_dps[0][0] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        store.add(bad)
+    assert store.history(1234) == []
+    assert not any((tmp_path / "units").rglob("*.json"))
+
+
+def test_infinite_uncertainty_is_stored_as_none_meaning_undetermined(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    rec = make_record()
+    rec.uncertainty_dps[0][4] = float("inf")
+    rec.uncertainty_dps[2][6] = float("nan")
+    store.add(rec)
+    back = CalibrationStore(tmp_path).get(1234, 1)
+    assert back.uncertainty_dps[0][4] is None and back.uncertainty_dps[2][6] is None
+    json.loads((tmp_path / "units/1234/v000001.json").read_text())  # strict JSON, no Infinity
+
+
+def test_numpy_arrays_are_accepted_and_stored_as_lists(tmp_path: Path) -> None:
+    np = pytest.importorskip("numpy")
+    rec = make_record()
+    rec.coefficients_dps = np.arange(30, dtype=float).reshape(3, 10) * 1e-3
+    rec.uncertainty_dps = np.full((3, 10), np.nan)
+    CalibrationStore(tmp_path).add(rec)
+    back = CalibrationStore(tmp_path).get(1234, 1)
+    assert back.coefficients_dps[2][9] == pytest.approx(0.029)
+    assert back.uncertainty_dps[1] == [None] * 10
+
+
+def test_corrupt_file_and_leftover_tmp_are_ignored_with_a_warning(tmp_path: Path, caplog) -> None:
+    store = CalibrationStore(tmp_path)
+    for i in range(3):
+        store.add(make_record(seed=i))
+    udir = tmp_path / "units" / "1234"
+    (udir / "v000002.json").write_text('{"serial": 1234, "version": 2, "terms": ["1"')  # truncated
+    (udir / ".v000004.json.999.1.tmp").write_text('{"serial": 12')
+    (udir / "notes.txt").write_text("not a record")
+    caplog.set_level(logging.WARNING, logger="gyrocal.daemon.store")
+    again = CalibrationStore(tmp_path)
+    assert [r.version for r in again.history(1234)] == [1, 3]
+    assert again.next_version(1234) == 4  # the unreadable v2 is never reused
+    text = caplog.text
+    assert "v000002.json" in text and "unreadable" in text
+    assert ".v000004.json.999.1.tmp" in text and "leftover" in text
+
+
+def test_record_that_claims_another_version_is_ignored(tmp_path: Path, caplog) -> None:
+    store = CalibrationStore(tmp_path)
+    store.add(make_record())
+    udir = tmp_path / "units" / "1234"
+    (udir / "v000002.json").write_text((udir / "v000001.json").read_text())  # a copy, still says v1
+    caplog.set_level(logging.WARNING)
+    assert [r.version for r in CalibrationStore(tmp_path).history(1234)] == [1]
+    assert "claims serial 1234 version 1" in caplog.text
+
+
+def test_loader_keeps_unknown_fields_through_a_rewrite(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    store.add(make_record())
+    path = tmp_path / "units/1234/v000001.json"
+    doc = json.loads(path.read_text())
+    doc["from_the_future"] = {"temperature_model": "T^3"}
+    doc["push"]["future_flag"] = True
+    path.write_text(json.dumps(doc))
+    again = CalibrationStore(tmp_path)
+    assert again.get(1234, 1).extra == {"from_the_future": {"temperature_model": "T^3"}}
+    again.update_push(1234, 1, {"status": "acked"})
+    doc = json.loads(path.read_text())
+    assert doc["from_the_future"] == {"temperature_model": "T^3"} and doc["push"]["future_flag"] is True
+    assert doc["push"]["status"] == "acked"
+
+
+def test_state_dir_that_cannot_be_used_raises_config_error_naming_path_and_fix(tmp_path: Path) -> None:
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("")
+    with pytest.raises(ConfigError) as err:
+        CalibrationStore(blocker / "state")
+    msg = str(err.value)
+    assert str(blocker / "state") in msg and "fix:" in msg and "StateDirectory" in msg
+
+
+# --- kill -9 during writes -------------------------------------------------------------------------
+
+WRITER = textwrap.dedent("""
+    import random, sys
+    from pathlib import Path
+    from gyrocal.daemon.store import CalibrationRecord, CalibrationStore
+    store = CalibrationStore(Path(sys.argv[1]))
+    rng = random.Random(int(sys.argv[2]))
+    terms = ["1", "gx", "gy", "gz", "gx^2", "gy^2", "gz^2", "gx*gy", "gy*gz", "gx*gz"]
+    while True:
+        rec = CalibrationRecord(
+            serial=77, version=0, terms=terms,
+            coefficients_dps=[[rng.uniform(-1, 1) for _ in terms] for _ in range(3)],
+            uncertainty_dps=[[rng.uniform(0, 1e-3) for _ in terms] for _ in range(3)],
+            # padding makes each write take long enough that kills often land inside one
+            stats={"samples": 5000, "residual_trace": [rng.random() for _ in range(4000)]})
+        rec = store.add(rec)
+        print("added", rec.version, flush=True)
+        store.update_push(77, rec.version, {"status": "acked", "attempts": 1, "readback_ok": True})
+        print("acked", rec.version, flush=True)
+""")
+
+
+def test_kill_9_at_random_moments_leaves_a_complete_contiguous_history(tmp_path: Path) -> None:
+    """~20 writer processes are SIGKILLed at seeded random points; each time the store must load,
+    every version file must be complete JSON, versions must be 1..N without a gap, and every
+    version the writer reported as written (add returned) must be there, with its ack if reported."""
+    rng = random.Random(20261122)
+    state = tmp_path / "state"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    durable_added, acked = 0, set()
+    for iteration in range(20):
+        proc = subprocess.Popen([sys.executable, "-c", WRITER, str(state), str(iteration)],
+                                stdout=subprocess.PIPE, text=True, env=env, cwd=REPO)
+        try:
+            wanted = rng.randint(1, 6)  # reported lines to wait for, then a random extra delay
+            for _ in range(wanted):
+                line = proc.stdout.readline()
+                assert line, f"writer died on its own in iteration {iteration}"
+                kind, version = line.split()
+                if kind == "added":
+                    durable_added = max(durable_added, int(version))
+                else:
+                    acked.add(int(version))
+            time.sleep(rng.uniform(0.0, 0.004))
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            proc.stdout.close()
+        assert proc.returncode == -signal.SIGKILL
+
+        store = CalibrationStore(state)
+        history = store.history(77)
+        versions = [r.version for r in history]
+        assert versions == list(range(1, len(versions) + 1)), f"gap after kill {iteration}: {versions}"
+        assert len(versions) >= durable_added, "a version that add() returned is missing"
+        for path in (state / "units" / "77").glob("v*.json"):
+            json.loads(path.read_text())  # every visible version file is complete
+        for rec in history:
+            assert len(rec.coefficients_dps) == 3 and len(rec.stats["residual_trace"]) == 4000
+            if rec.version in acked:
+                assert rec.push["status"] == "acked", f"v{rec.version} lost its reported ack"
+        durable_added = len(versions)  # the next writer continues from here
+    assert durable_added >= 20
+
+
+def test_add_never_overwrites_a_version_file_written_behind_its_back(tmp_path: Path) -> None:
+    first = CalibrationStore(tmp_path)
+    second = CalibrationStore(tmp_path)
+    first.add(make_record(seed=1))
+    assert second.history(1234)[0].version == 1  # loads now, sees v1
+    first.add(make_record(seed=2))  # v2 written by another store object
+    rec = second.add(make_record(seed=3))
+    assert rec.version == 3
+    assert CalibrationStore(tmp_path).get(1234, 2).stats["samples"] == 1002
+
+
+def test_numpy_and_nan_in_free_form_stats_do_not_block_the_write(tmp_path: Path) -> None:
+    np = pytest.importorskip("numpy")
+    rec = make_record(serial=np.int64(55))
+    rec.stats = {"rms_dps": np.array([0.1, np.nan, 0.3], dtype=np.float32), "n": np.int64(7),
+                 "validation": {"ratio": float("inf")}, "path": tmp_path}
+    CalibrationStore(tmp_path).add(rec)
+    back = CalibrationStore(tmp_path).get(55, 1)
+    assert back.stats["rms_dps"][1] is None and back.stats["n"] == 7
+    assert back.stats["validation"]["ratio"] is None and back.stats["path"] == str(tmp_path)
