@@ -7,7 +7,6 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-from sim_helpers import SimProcess, free_udp_port, read_status, wait_for
 
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.drivers import CanLink, open_link
@@ -19,6 +18,7 @@ from gyrocal.sim.schedule import tumble
 from gyrocal.sim.transports import CanTransport
 from gyrocal.sim.truth import TruthModel
 from gyrocal.sim.unit import VirtualUnit
+from tests.sim_helpers import SimProcess, free_udp_port, read_status, wait_for
 
 GROUP = "239.74.163.2"
 _REAL_BUS = can.Bus

@@ -5,7 +5,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_helpers import SimProcess, read_status, wait_for
 
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.drivers import SerialLink, open_link
@@ -21,6 +20,7 @@ from gyrocal.protocol.messages import (
     coeff_set_crc,
 )
 from gyrocal.sim.truth import TruthModel
+from tests.sim_helpers import SimProcess, read_status, wait_for
 
 
 class Recorder:

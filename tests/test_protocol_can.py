@@ -18,6 +18,7 @@ from gyrocal.protocol.messages import (
     CoeffTransferFailed,
     CoeffWrite,
     Hello,
+    HelloRequest,
     NakReason,
     Sample,
     coeff_set_crc,
@@ -49,7 +50,8 @@ def test_dbc_loads_and_every_frame_fits_classic_can_with_the_documented_ids() ->
     db = load_dbc()
     ids = {m.name: m.frame_id for m in db.messages}
     assert ids == {
-        "HELLO": 0x110, "HELLO_BOOT": 0x120, "COEFF_ACK": 0x130, "COEFF_NAK": 0x140, "COEFF_READ": 0x150,
+        "HELLO_REQUEST": 0x100, "HELLO": 0x110, "HELLO_BOOT": 0x120,
+        "COEFF_ACK": 0x130, "COEFF_NAK": 0x140, "COEFF_READ": 0x150,
         "COEFF_BEGIN": 0x160, "COEFF_DATA": 0x170, "COEFF_COMMIT": 0x180, "REPORT_BEGIN": 0x190,
         "REPORT_DATA": 0x1A0, "REPORT_END": 0x1B0, "SAMPLE_TIME": 0x1C0, "SAMPLE_A": 0x1D0,
         "SAMPLE_B": 0x1E0, "SAMPLE_C": 0x1F0,
@@ -203,12 +205,14 @@ def test_node_id_offsets_every_frame_and_other_nodes_are_ignored() -> None:
         CanCodec(node_id=16)
 
 
-def test_wrong_dlc_and_unknown_function_are_counted() -> None:
+def test_wrong_dlc_and_foreign_frames_are_counted() -> None:
     dec = CanDecoder()
     assert dec.feed(can.Message(arbitration_id=0x1D0, data=b"\x00" * 7, is_extended_id=False)) == []
+    # function 0 is HELLO_REQUEST, DLC 0: eight bytes there are a length error too
     assert dec.feed(can.Message(arbitration_id=0x100, data=b"\x00" * 8, is_extended_id=False)) == []
     assert dec.feed(can.Message(arbitration_id=0x7FF, data=b"", is_extended_id=False)) == []
-    assert (dec.stats.length_errors, dec.stats.unknown_types, dec.stats.foreign_frames) == (1, 1, 1)
+    assert (dec.stats.length_errors, dec.stats.unknown_types, dec.stats.foreign_frames) == (2, 0, 1)
+    assert dec.feed(can.Message(arbitration_id=0x100, data=b"", is_extended_id=False)) == [HelloRequest()]
 
 
 def test_hello_restarts_seq_and_time() -> None:
@@ -218,3 +222,35 @@ def test_hello_restarts_seq_and_time() -> None:
     msgs += [can_sample(s) for s in range(3)]
     assert run(codec, msgs, dec) == msgs
     assert dec.stats.seq_gaps == 0
+
+
+def test_anchor_whose_sample_was_lost_is_not_applied_to_a_later_sample() -> None:
+    codec = CanCodec()
+    frames = [f for i in range(300) for f in codec.encode(can_sample(i))]
+    a256 = next(k for k, f in enumerate(frames) if f.arbitration_id == 0x1D0 and f.data[:2] == b"\x00\x01")
+    assert frames[a256 - 1].arbitration_id == 0x1C0  # the anchor goes right before SAMPLE_A
+    del frames[a256]
+    dec = codec.decoder()
+    out = [m for f in frames for m in dec.feed(f)]
+    assert out == [can_sample(i) for i in range(300) if i != 256]
+    assert dec.stats.seq_gaps == 1 and dec.stats.lost_samples == 1
+
+
+def test_frames_of_two_samples_interleaved_by_mailbox_priority_still_reassemble() -> None:
+    codec = CanCodec()
+    f = [codec.encode(can_sample(i)) for i in range(4)]  # f[0] has an anchor in front
+    order = f[0] + f[1][:2] + f[2][:1] + f[1][2:] + f[2][1:] + f[3]  # C of 1 after A of 2
+    dec = codec.decoder()
+    assert [m for fr in order for m in dec.feed(fr)] == [can_sample(i) for i in range(4)]
+    assert dec.stats.errors() == 0
+
+
+def test_sample_frames_match_the_documented_worked_example() -> None:
+    s = Sample(7, 1.5, (0.001, -2.5, 100.0), (0.0, 0.5, -1.0), 23.45)
+    got = [(f.arbitration_id, f.data.hex(" ")) for f in CanCodec().encode(s)]
+    assert got == [
+        (0x1C0, "07 00 60 e3 16 00 00 00"),
+        (0x1D0, "07 00 e8 03 00 00 29 09"),
+        (0x1E0, "67 60 da d9 ff 00 40 1f"),
+        (0x1F0, "07 10 5e 5f 80 c1 60 e3"),
+    ]

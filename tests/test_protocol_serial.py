@@ -199,3 +199,13 @@ def test_byte_at_a_time_feed_equals_bulk_feed() -> None:
     one = FrameDecoder()
     out = [m for b in stream for m in one.feed(bytes([b]))]
     assert out == ALL_MESSAGES == FrameDecoder().feed(stream)
+
+
+def test_numpy_scalars_and_arrays_encode_like_python_numbers() -> None:
+    np = pytest.importorskip("numpy")
+    gyro, accel = np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 1.0])
+    s = Sample(np.int64(5), np.float64(0.5), gyro, accel, np.float64(25))
+    assert FrameDecoder().feed(encode_frame(s)) == [Sample(5, 0.5, (0.1, 0.2, 0.3), (0.0, 0.0, 1.0), 25.0)]
+    c = np.arange(30.0).reshape(3, 10) * 1e-4
+    assert coeff_set_crc(np.int64(2), SEED000, c) == coeff_set_crc(2, SEED000, c.tolist())
+    assert CoeffWrite(2, SEED000, c) == CoeffWrite(2, SEED000, c.tolist())

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_helpers import SIM_CMD, SimProcess, read_status, wait_for
 
 from gyrocal.cli import main as cli_main
 from gyrocal.logformat import read_log
+from tests.sim_helpers import SIM_CMD, SimProcess, read_status, wait_for
 
 
 def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
@@ -100,11 +100,14 @@ def test_sim_status_json_symlink_and_sigterm_exit_cleanly(tmp_path: Path) -> Non
     assert not list(tmp_path.glob(".st.json.*"))  # the atomic write leaves no temporary files
 
 
-def test_sim_flash_file_keeps_boot_count_across_processes(tmp_path: Path) -> None:
+def test_sim_flash_file_keeps_boot_count_across_processes_even_after_sigkill(tmp_path: Path) -> None:
     flash, status = tmp_path / "flash.json", tmp_path / "st.json"
-    for _ in range(2):
-        r = _run("--rate", "100", "--duration", "0.1", "--flash", str(flash), "--status-json", str(status))
-        assert r.returncode == 0, r.stderr
+    sim = SimProcess("--rate", "100", "--flash", str(flash), tmp_path=tmp_path)
+    assert wait_for(lambda: flash.exists())  # written at switch-on, as firmware would
+    sim.proc.kill()  # the cable is pulled: no clean shutdown
+    sim.stop()
+    r = _run("--rate", "100", "--duration", "0.1", "--flash", str(flash), "--status-json", str(status))
+    assert r.returncode == 0, r.stderr
     assert json.loads(flash.read_text())["boot_count"] == 2 and read_status(status)["boot_count"] == 2
 
 

@@ -12,6 +12,7 @@ from gyrocal.protocol.messages import (
     CoeffTransferFailed,
     CoeffWrite,
     Hello,
+    HelloRequest,
     NakReason,
     Sample,
     coeff_set_crc,
@@ -111,9 +112,18 @@ def test_unit_faults_nak_next_then_drop_acks_then_normal() -> None:
     assert u.status()["writes"] == {"acked": 2, "naked": 2, "dropped": 1}
 
 
-def test_unit_never_hello_fault_stays_silent_at_switch_on() -> None:
+def test_unit_answers_hello_request_with_the_current_boot() -> None:
+    u = _unit()
+    assert u.handle(HelloRequest()) == []  # off: nothing to say
+    u.power_on()
+    u.power_on()
+    assert u.handle(HelloRequest()) == [Hello(serial=1234, fw_version="1.0.0", boot_count=2, rate_hz=100)]
+    assert u.boot_count == 2
+
+
+def test_unit_never_hello_fault_stays_silent_at_switch_on_and_on_request() -> None:
     u = _unit(faults=Faults(never_hello=True))
-    assert u.power_on() == [] and u.boot_count == 1
+    assert u.power_on() == [] and u.boot_count == 1 and u.handle(HelloRequest()) == []
 
 
 def test_unit_flash_state_round_trips() -> None:

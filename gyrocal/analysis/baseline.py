@@ -22,6 +22,7 @@ from gyrocal.analysis.segments import AXES, Usable
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 
 GRAVITY_TERMS: tuple[str, ...] = tuple(t for t in SEED000_TERMS if t != "1")
+MAX_SEGMENT_ROWS = 2000
 
 
 @dataclass
@@ -55,21 +56,31 @@ class Problem:
 def lstsq(x: np.ndarray, y: np.ndarray, rcond: float = 1e-6) -> tuple[np.ndarray, int]:
     """Rank-aware least squares: coefficients (P,) or (P, K) in physical units, and the rank.
 
-    Columns are scaled to unit RMS first, so the tolerance means the same for g, degC and s. The
-    solution is the pseudo-inverse one through the eigen-decomposition of the (P, P) Gram matrix:
-    directions whose singular value is below ``rcond`` times the largest are left undetermined
-    (minimum norm), e.g. the 1 + gx^2 + gy^2 + gz^2 direction. The Gram route costs one BLAS pass
-    over the data, which matters for 30-minute logs fitted hundreds of times in cross-validation.
+    See ``gram_solve``; this forms the Gram matrix from the design x (N, P) and targets y.
     """
-    scale = np.sqrt(np.mean(x * x, axis=0)) if x.shape[0] else np.ones(x.shape[1])
+    beta, rank = gram_solve(x.T @ x, x.T @ y, x.shape[0], rcond, return_rank=True)
+    return beta, rank
+
+
+def gram_solve(g: np.ndarray, b: np.ndarray, n: int, rcond: float = 1e-6, return_rank: bool = False):
+    """Solve the normal equations g beta = b (g = X'X, b = X'y) with rank awareness.
+
+    Columns are scaled to unit RMS first (from diag(g) / n), so the tolerance means the same for
+    g, degC and s. The solution is the pseudo-inverse one through the eigen-decomposition of the
+    scaled Gram matrix: directions whose singular value is below ``rcond`` times the largest are
+    left undetermined (minimum norm), e.g. the 1 + gx^2 + gy^2 + gz^2 direction. The Gram route
+    costs one BLAS pass over the data, which matters for 30-minute logs cross-validated many times.
+    """
+    scale = np.sqrt(np.maximum(np.diag(g), 0.0) / max(n, 1))
     scale = np.where(scale > 1e-300, scale, 1.0)
-    xs = x / scale
-    lam, vec = np.linalg.eigh(xs.T @ xs)
+    gs = g / np.outer(scale, scale)
+    lam, vec = np.linalg.eigh(gs)
     keep = lam > (rcond**2) * max(float(lam[-1]), 1e-300)
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
-    beta = vec @ (inv[:, None] * (vec.T @ (xs.T @ y)).reshape(len(lam), -1))
-    beta = beta.reshape((x.shape[1],) + np.shape(y)[1:])
-    return (beta.T / scale).T, int(keep.sum())
+    bs = (b.T / scale).T
+    beta = vec @ (inv[:, None] * (vec.T @ bs.reshape(len(lam), -1)))
+    beta = (beta.reshape(b.shape).T / scale).T
+    return (beta, int(keep.sum())) if return_rank else beta
 
 
 def _run_mean(x: np.ndarray, run: np.ndarray) -> np.ndarray:
@@ -118,17 +129,25 @@ def baseline_design(cols: Mapping[str, np.ndarray], session: np.ndarray) -> np.n
 
 
 def noise_dps(y: np.ndarray, run: np.ndarray) -> np.ndarray:
-    """White-noise level per axis [deg/s]: a robust std of first differences within runs / sqrt(2)."""
+    """White-noise level per axis [deg/s]: the RMS of first differences within runs / sqrt(2).
+
+    Differences remove the slow drift. Outliers beyond 6 robust sigmas (a knock) are left out; the
+    RMS itself is not a median because quantised MEMS output (steps of 0.06 deg/s) makes medians of
+    differences jump between quantisation levels.
+    """
     same = run[1:] == run[:-1]
     d = np.diff(y, axis=0)[same]
     if d.shape[0] < 3:
         return np.full(3, np.nan)
-    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
-    return 1.4826 * mad / np.sqrt(2.0)
+    robust = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    lim = 6.0 * np.maximum(robust, np.sqrt(np.mean(d**2, axis=0)) / 3.0)
+    keep = np.abs(d) <= lim
+    return np.sqrt(np.sum(np.where(keep, d**2, 0.0), axis=0) / np.maximum(keep.sum(axis=0), 1) / 2.0)
 
 
 def residual_stats(prob: Problem, resid: np.ndarray) -> dict:
-    """Residual mean and RMS per session, and the spread of per-run means against white noise.
+    """Residual mean and RMS per session and per still run (segment, x y z), and the spread of
+    per-run means against white noise.
 
     ``run_mean_excess`` is var(run means) / mean(sigma^2 / n_run): about 1 when the runs differ
     only by white noise, far above 1 when the bias moves between runs in a way the model misses.
@@ -144,6 +163,17 @@ def residual_stats(prob: Problem, resid: np.ndarray) -> dict:
         })
     run = prob.usable.run
     counts = np.bincount(run)
+    t = prob.cols["t"]
+    first = np.searchsorted(run, np.arange(counts.size))
+    means = np.column_stack([np.bincount(run, weights=resid[:, k]) for k in range(3)]) / counts[:, None]
+    rms = np.sqrt(np.column_stack([np.bincount(run, weights=resid[:, k] ** 2) for k in range(3)])
+                  / counts[:, None])
+    out["segments"] = [  # one row per still run (segment), capped so a long log stays readable
+        {"t_start_s": round(float(t[first[j]]), 3), "samples": int(counts[j]),
+         "session": int(prob.usable.session[first[j]]),
+         "mean_dps": [round(float(v), 7) for v in means[j]], "rms_dps": [round(float(v), 7) for v in rms[j]]}
+        for j in range(min(counts.size, MAX_SEGMENT_ROWS))
+    ]
     keep = counts >= 5
     sigma = noise_dps(resid, run)
     for k, a in enumerate(AXES):

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import optimize
 
 from gyrocal.analysis.baseline import Problem, lstsq
 from gyrocal.analysis.segments import AXES
@@ -59,15 +60,20 @@ def temperature_rate(prob: Problem) -> Candidate | None:
 
 
 def _best_tau(prob: Problem, train: np.ndarray, taus: list[float]) -> float:
-    """The warm-up time constant [s] that best fits the training samples (pooled over axes)."""
-    best, best_sse = taus[0], np.inf
-    for tau in taus:
+    """The warm-up time constant [s] that best fits the training samples (pooled over axes).
+
+    A grid search, then a bounded refinement in log(tau) around the best grid point, so a time
+    constant between grid points does not leave a structured misfit behind.
+    """
+    def sse(tau: float) -> float:
         x = np.column_stack([prob.base, np.exp(-prob.cols["t_on"] / tau)])
         beta, _ = lstsq(x[train], prob.y[train])
-        sse = float(np.sum((prob.y[train] - x[train] @ beta) ** 2))
-        if sse < best_sse:
-            best, best_sse = tau, sse
-    return best
+        return float(np.sum((prob.y[train] - x[train] @ beta) ** 2))
+
+    best = min(taus, key=sse)
+    res = optimize.minimize_scalar(lambda lt: sse(float(np.exp(lt))), method="bounded",
+                                   bounds=(np.log(best / 2), np.log(best * 2)), options={"xatol": 0.02})
+    return float(np.exp(res.x)) if res.fun < sse(best) else best
 
 
 def warmup(prob: Problem) -> Candidate | None:
@@ -78,10 +84,53 @@ def warmup(prob: Problem) -> Candidate | None:
     for k in range(prob.n_folds):
         tau = _best_tau(prob, prob.fold != k, taus)
         folds.append(np.exp(-prob.cols["t_on"] / tau)[:, None])
-    tau = _best_tau(prob, np.ones(prob.n, dtype=bool), taus)
+    tau = float(f"{_best_tau(prob, np.ones(prob.n, dtype=bool), taus):.3g}")
     name = f"exp(-t_on/{tau:g})"
     return Candidate("warmup", folds, _terms_design(prob, [name]), [name], {"tau_s": tau},
                      covariate="t_on", n_params=1)
+
+
+DETREND_S = 10.0
+"""Window [s] of the local mean removed before the spectrum, so slow drift does not leak."""
+F_MIN_HZ = 0.15
+"""Lowest frequency [Hz] the periodic search considers; slower content belongs to the other causes."""
+
+
+def gridded(prob: Problem, resid: np.ndarray, mask: np.ndarray) -> list[np.ndarray]:
+    """Per session, the residual (M, K) on its regular time grid, locally detrended, zero in gaps.
+
+    The local mean over ``DETREND_S`` is a normalised convolution (sum of the samples present over
+    their count), so the gaps of a tumble do not bias it. Without it, a slow drift, cut into pieces
+    by the still mask, leaks into the mask's own harmonics (0.5 Hz for a 2 s pose cycle).
+    """
+    fs = prob.rate_hz
+    t = prob.cols["t"]
+    r2 = resid.reshape(resid.shape[0], -1)
+    out = []
+    half = max(1, int(round(DETREND_S * fs / 2)))
+    for s in np.unique(prob.usable.session):
+        m = (prob.usable.session == s) & mask
+        if m.sum() < 16:
+            continue
+        i = np.round((t[m] - t[m][0]) * fs).astype(int)
+        n = int(i.max()) + 1
+        g = np.zeros((n, r2.shape[1]))
+        w = np.zeros(n)
+        g[i], w[i] = r2[m], 1.0
+        cg = np.vstack([np.zeros((1, g.shape[1])), np.cumsum(g, axis=0)])
+        cw = np.concatenate(([0.0], np.cumsum(w)))
+        lo = np.clip(np.arange(n) - half, 0, n)
+        hi = np.clip(np.arange(n) + half + 1, 0, n)
+        local = (cg[hi] - cg[lo]) / np.maximum(cw[hi] - cw[lo], 1.0)[:, None]
+        out.append((g - local) * w[:, None])
+    return out
+
+
+def spectrum(prob: Problem, grids: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Frequencies [Hz] and power (F, K) summed over sessions, zero-padded to a common length."""
+    nfft = 1 << int(np.ceil(np.log2(2 * max(len(g) for g in grids))))
+    power = sum(np.abs(np.fft.rfft(g, n=nfft, axis=0)) ** 2 for g in grids)
+    return np.fft.rfftfreq(nfft, 1.0 / prob.rate_hz), power
 
 
 def peak_frequency_hz(prob: Problem, resid: np.ndarray, mask: np.ndarray) -> float:
@@ -89,25 +138,14 @@ def peak_frequency_hz(prob: Problem, resid: np.ndarray, mask: np.ndarray) -> flo
 
     The residual is placed on each session's regular time grid with zeros in the gaps (moves,
     held-out blocks), so the phase of a disturbance that runs on absolute time is kept; the power is
-    summed over axes and sessions. Slow content (< 0.05 Hz) belongs to the other causes.
+    summed over axes and sessions.
     """
-    fs = prob.rate_hz
-    t = prob.cols["t"]
-    grids = []
-    for s in np.unique(prob.usable.session):
-        m = (prob.usable.session == s) & mask
-        if m.sum() < 16:
-            continue
-        i = np.round((t[m] - t[m][0]) * fs).astype(int)
-        g = np.zeros((int(i.max()) + 1, 3))
-        g[i] = resid[m]
-        grids.append(g)
+    grids = gridded(prob, resid, mask)
     if not grids:
         return float("nan")
-    nfft = 1 << int(np.ceil(np.log2(2 * max(len(g) for g in grids))))
-    power = sum(np.sum(np.abs(np.fft.rfft(g, n=nfft, axis=0)) ** 2, axis=1) for g in grids)
-    f = np.fft.rfftfreq(nfft, 1.0 / fs)
-    band = (f >= 0.05) & (f <= 0.45 * fs)
+    f, p = spectrum(prob, grids)
+    power = p.sum(axis=1)
+    band = (f >= F_MIN_HZ) & (f <= 0.45 * prob.rate_hz)
     if not band.any():
         return float("nan")
     k = int(np.flatnonzero(band)[np.argmax(power[band])])

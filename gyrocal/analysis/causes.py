@@ -1,9 +1,11 @@
 """Name the cause: forward selection of candidate causes on held-out data, per axis.
 
 Per axis, starting from the baseline, the candidate that most reduces the held-out, tau-averaged
-residual variance is added, as long as it passes the significance rule of ``holdout``. The random
+residual variance is added, as long as it passes the significance rule of ``holdout`` (the minimum
+share applies to the variance the model so far leaves, so a small second effect is still found). The random
 walk is flexible enough to mimic any slow effect, so (DESIGN.md) it is chosen only when no covariate
-cause (temperature, its rate, warm-up) explains at least ``RW_COVARIATE_SHARE`` of what it explains.
+cause (temperature, its rate, warm-up) explains about as well (``RW_COVARIATE_SHARE``,
+``RW_LEFTOVER_RATIO``) with its one or two parameters against the walk's one per knot.
 Findings merge the axes on which a cause was selected and are ranked by the share of the baseline
 held-out variance they explain (their incremental reduction, so the shares add up).
 """
@@ -20,6 +22,7 @@ from gyrocal.analysis.candidates import COVARIATE_CAUSES, Candidate
 from gyrocal.analysis.holdout import (
     ALPHA,
     MIN_FRACTION,
+    MIN_FRACTION_OF_BASELINE,
     compare,
     heldout_residual,
     moving_average,
@@ -29,6 +32,9 @@ from gyrocal.analysis.holdout import (
 from gyrocal.analysis.segments import AXES
 
 RW_COVARIATE_SHARE = 0.8
+RW_LEFTOVER_RATIO = 2.0
+"""A covariate explains the wander "about as well" as the random walk when it explains at least
+RW_COVARIATE_SHARE of what the walk explains and leaves at most RW_LEFTOVER_RATIO times its leftover."""
 MAX_CAUSES_PER_AXIS = 3
 
 
@@ -45,6 +51,7 @@ class AxisResult:
     """The selected causes of one axis and its held-out residuals."""
 
     steps: list[Step] = field(default_factory=list)
+    first: dict[str, dict] = field(default_factory=dict)  # every candidate against the baseline
     r_base: np.ndarray | None = None
     r_ext: np.ndarray | None = None
 
@@ -56,11 +63,24 @@ def _ms(prob: Problem, r: np.ndarray, tau_s: float) -> float:
 
 def select_axis(
     prob: Problem, axis: int, cands: list[Candidate], tau_s: float,
-    progress: Callable[[str], None] | None = None,
+    progress: Callable[[str], None] | None = None, cache: dict | None = None,
 ) -> AxisResult:
-    """Forward selection of causes on one axis (see the module docstring for the rule)."""
+    """Forward selection of causes on one axis (see the module docstring for the rule).
+
+    ``cache`` maps a tuple of cause names to held-out residuals (M, 3), shared between axes: the
+    models are the same on every axis until the axes' selections differ.
+    """
+    cache = {} if cache is None else cache
+
+    def heldout(models: list[Candidate]) -> np.ndarray:
+        key = tuple(c.cause for c in models)
+        if key not in cache:
+            extras = [[c.folds[k] for c in models] for k in range(prob.n_folds)]
+            cache[key] = heldout_residual(prob, extras, [c.penalty for c in models])
+        return cache[key][:, axis]
+
     res = AxisResult()
-    res.r_base = heldout_residual(prob, axis, [[] for _ in range(prob.n_folds)])
+    res.r_base = heldout([])
     chosen: list[Candidate] = []
     r_cur = res.r_base
     while len(chosen) < MAX_CAUSES_PER_AXIS:
@@ -68,22 +88,27 @@ def select_axis(
         for c in cands:
             if c in chosen:
                 continue
-            extras = [[*(d.folds[k] for d in chosen), c.folds[k]] for k in range(prob.n_folds)]
-            r_new = heldout_residual(prob, axis, extras, [*(d.penalty for d in chosen), c.penalty])
+            r_new = heldout([*chosen, c])
             tau_c = c.tau_s if c.tau_s is not None else tau_s
             cmp = compare(prob, r_cur, r_new, tau_c)
             frac = cmp.reduction / _ms(prob, res.r_base, tau_c)
-            scored.append((c, frac, cmp, r_new))
-        sig = [s for s in scored if s[2].p_value < ALPHA and s[1] >= MIN_FRACTION]
+            of_left = cmp.reduction / _ms(prob, r_cur, tau_c)
+            scored.append((c, frac, cmp, r_new, of_left))
+        if not chosen:
+            res.first = {s[0].cause: {"explained_fraction": round(float(s[1]), 4), "p_value": s[2].p_value}
+                         for s in scored}
+        sig = [s for s in scored if s[2].p_value < ALPHA and s[4] >= MIN_FRACTION
+               and s[1] >= MIN_FRACTION_OF_BASELINE]
         if not sig:
             break
         best = max(sig, key=lambda s: s[1])
         if best[0].cause == "random_walk":
-            alt = [s for s in scored if s[0].cause in COVARIATE_CAUSES
-                   and s[1] >= RW_COVARIATE_SHARE * best[1] and s[2].p_value < ALPHA]
+            alt = [s for s in scored if s[0].cause in COVARIATE_CAUSES and s[2].p_value < ALPHA
+                   and s[1] >= RW_COVARIATE_SHARE * best[1]
+                   and 1.0 - s[1] <= RW_LEFTOVER_RATIO * (1.0 - best[1])]
             if alt:
                 best = max(alt, key=lambda s: s[1])
-        c, frac, cmp, r_new = best
+        c, frac, cmp, r_new, _ = best
         chosen.append(c)
         res.steps.append(Step(c.cause, float(frac), cmp.p_value, cmp.blocks))
         r_cur = r_new

@@ -31,9 +31,10 @@ def load_dataset(name: str, src: str | None = None) -> LogData:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", choices=sorted(LOADERS), help="which shipped dataset")
-    parser.add_argument("paths", nargs="+", metavar="[SRC] OUT.csv",
-                        help="optional source file/folder (default: data/<dataset>), then the output log")
+    parser.add_argument("dataset", help=f"which shipped dataset: {', '.join(LOADERS)}")
+    parser.add_argument("paths", nargs="+", metavar="PATH",
+                        help="[SRC] OUT.csv: an optional source file/folder (default: data/<dataset>), "
+                             "then the output log")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -16,6 +16,7 @@ import numpy as np
 from scipy import stats
 
 from gyrocal.analysis.baseline import Problem
+from gyrocal.analysis.candidates import F_MIN_HZ, gridded, spectrum
 from gyrocal.analysis.segments import AXES
 
 
@@ -48,34 +49,23 @@ def whiteness(r: np.ndarray, lags: int = 20) -> dict:
 
 
 def psd_peaks(prob: Problem, r: np.ndarray, n_peaks: int = 3) -> dict:
-    """The largest spectral peaks (>= 0.05 Hz) of the residual per axis, gap-aware (zero filled).
+    """The largest spectral peaks (>= F_MIN_HZ) of the residual per axis, gap-aware (zero filled).
 
     ``ratio`` is the peak power over the median power of the band: about 10 or less is what white
     noise gives for the largest of thousands of bins.
     """
-    fs = prob.rate_hz
-    t = prob.cols["t"]
+    grids = gridded(prob, r, np.ones(prob.n, dtype=bool))
+    f, p = spectrum(prob, grids)
+    band = (f >= F_MIN_HZ) & (f <= 0.45 * prob.rate_hz)
     out = {}
     for k, a in enumerate(AXES):
-        grids = []
-        for s in np.unique(prob.usable.session):
-            m = prob.usable.session == s
-            i = np.round((t[m] - t[m][0]) * fs).astype(int)
-            g = np.zeros(int(i.max()) + 1)
-            g[i] = r[m, k]
-            grids.append(g)
-        nfft = 1 << int(np.ceil(np.log2(max(len(g) for g in grids))))
-        p = sum(np.abs(np.fft.rfft(g, nfft)) ** 2 for g in grids)
-        f = np.fft.rfftfreq(nfft, 1 / fs)
-        band = (f >= 0.05) & (f <= 0.45 * fs)
-        pb, fb = p[band], f[band]
+        pb, fb = p[band, k], f[band]
         if pb.size == 0:
             out[a] = []
             continue
         med = float(np.median(pb)) or 1e-300
-        peaks = []
-        order = np.argsort(pb)[::-1]
-        for j in order:
+        peaks: list[dict] = []
+        for j in np.argsort(pb)[::-1]:
             if all(abs(fb[j] - q["frequency_hz"]) > 3 * (f[1] - f[0]) for q in peaks):
                 peaks.append({"frequency_hz": round(float(fb[j]), 4), "ratio": round(float(pb[j] / med), 1)})
             if len(peaks) == n_peaks:

@@ -45,14 +45,16 @@ class Analysis:
     resid_ext: np.ndarray  # (M, 3) in-sample residual of the extended model [deg/s]
     extended_terms: list[str] = field(default_factory=list)
     random_walk: dict | None = None
+    contributions: dict[str, np.ndarray] = field(default_factory=dict)  # cause -> (M, 3) [deg/s]
 
 
 def _select(prob: Problem, cands: list[Candidate], tau_s: float, say: Callable[[str], None]
             ) -> list[AxisResult]:
-    out = []
+    out: list[AxisResult] = []
+    cache: dict = {}
     for k, a in enumerate(AXES):
         say(f"selecting causes on axis {a} ({k + 1}/3), tau_s={tau_s:g}")
-        out.append(select_axis(prob, k, cands, tau_s, say))
+        out.append(select_axis(prob, k, cands, tau_s, say, cache))
     return out
 
 
@@ -85,11 +87,13 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
     resid_base = np.empty_like(prob.y)
     resid_ext = np.empty_like(prob.y)
     coefs: dict[str, dict[str, np.ndarray]] = {}
+    contrib: dict[str, np.ndarray] = {}
     for k, a in enumerate(AXES):
         _, resid_base[:, k] = fit_full(prob, k, [])
         beta, resid_ext[:, k] = fit_full(prob, k, chosen[a])
         for cause, b in cause_coefficients(prob, chosen[a], beta).items():
             coefs.setdefault(cause, {})[a] = b
+            contrib.setdefault(cause, np.zeros_like(prob.y))[:, k] = by_name[cause].full @ b
     findings = _findings(prob, per_axis, by_name, coefs, resid_base)
     ext_terms = list(SEED000_TERMS)
     for c in cands:
@@ -143,12 +147,13 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
             "residuals": residual_stats(prob, resid_base),
             "whiteness": dg.whiteness(resid_base),
             "psd_peaks": dg.psd_peaks(prob, resid_base),
+            "candidates_vs_baseline": {a: r.first for a, r in zip(AXES, per_axis, strict=True)},
             "covariates": dg.covariate_table(prob, resid_base, log.extra_columns),
             "baseline_note": "'1' is fitted per session (the bias jumps at switch-on); gravity terms "
                              f"{list(GRAVITY_TERMS)} use each still run's mean specific force",
         },
     }
-    return Analysis(result, prob, chosen, resid_base, resid_ext, ext_terms, random_walk)
+    return Analysis(result, prob, chosen, resid_base, resid_ext, ext_terms, random_walk, contrib)
 
 
 def _findings(prob: Problem, per_axis: list[AxisResult], by_name: dict[str, Candidate],
@@ -203,5 +208,5 @@ def _simulate(prob: Problem, resid_base: np.ndarray, resid_ext: np.ndarray, sigm
 
 def heldout_for(prob: Problem, axis: int, chosen: list[Candidate]) -> np.ndarray:
     """Held-out residual (M,) of baseline + chosen causes on one axis (for callers and tests)."""
-    return heldout_residual(prob, axis, [[c.folds[k] for c in chosen] for k in range(prob.n_folds)],
-                            [c.penalty for c in chosen])
+    return heldout_residual(prob, [[c.folds[k] for c in chosen] for k in range(prob.n_folds)],
+                            [c.penalty for c in chosen])[:, axis]

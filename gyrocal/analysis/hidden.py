@@ -123,8 +123,8 @@ def inject(columns: Mapping[str, np.ndarray], cause: str, amplitude_dps: float, 
     out = {k: np.array(v, dtype=float) for k, v in columns.items()}
     t = out["t"]
     session = out.get("session", np.zeros_like(t))
-    t_on = t - np.array([t[session == s][0] for s in session]) if np.unique(session).size > 1 \
-        else t - t[0]
+    uniq, first = np.unique(session, return_index=True)
+    t_on = t - t[first][np.searchsorted(uniq, session)]
     if cause == "warmup":
         sig = amplitude_dps * np.exp(-t_on / params.get("tau_s", 30.0))
     elif cause == "periodic":

@@ -7,8 +7,8 @@ Significance rule (measured in benchmarks/bench_analyze.py): a candidate term gr
 an axis when, over the held-out time blocks, the per-block reduction of the mean squared
 tau-averaged residual is positive by a one-sided t-test with p < ``ALPHA`` (Bonferroni over
 candidates and axes from a family level of 1%), and it explains at least ``MIN_FRACTION`` of the
-baseline held-out variance. Blocks, not samples, are the test's units, because slow residuals are
-correlated within a block.
+held-out variance the model so far leaves and ``MIN_FRACTION_OF_BASELINE`` of the baseline's.
+Blocks, not samples, are the test's units, because slow residuals are correlated within a block.
 """
 
 from __future__ import annotations
@@ -19,53 +19,82 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from gyrocal.analysis.baseline import Problem, lstsq
+from gyrocal.analysis.baseline import Problem, gram_solve, lstsq
 
 FAMILY_ALPHA = 0.01
 N_TESTS = 6 * 3  # six causes, three axes
 ALPHA = FAMILY_ALPHA / N_TESTS
 MIN_FRACTION = 0.05
+"""Least share of the variance left by the model so far that a new cause must explain."""
+MIN_FRACTION_OF_BASELINE = 0.01
+"""Least share of the baseline held-out variance a cause must explain to be reported at all."""
 
 Designer = Callable[[np.ndarray], np.ndarray]
 """Given a training mask (M,), return the extra design columns (M, p) for all samples."""
 
 
-def penalized_lstsq(x: np.ndarray, y: np.ndarray, blocks: list[np.ndarray],
-                    penalties: list[np.ndarray | None]) -> np.ndarray:
-    """Least squares on x = [baseline, *blocks] with penalty rows appended (``pen @ coef = 0``)."""
-    rows = []
-    p0 = x.shape[1] - sum(b.shape[1] for b in blocks)
-    k = p0
+def _penalty_rows(p_total: int, blocks: list[np.ndarray], penalties: list[np.ndarray | None]
+                  ) -> np.ndarray | None:
+    """The penalty rows (R, P) over the full coefficient vector [baseline, *blocks]."""
+    rows, k = [], p_total - sum(b.shape[1] for b in blocks)
     for b, pen in zip(blocks, penalties, strict=True):
         if pen is not None and pen.size:
-            r = np.zeros((pen.shape[0], x.shape[1]))
+            r = np.zeros((pen.shape[0], p_total))
             r[:, k : k + b.shape[1]] = pen
             rows.append(r)
         k += b.shape[1]
-    if rows:
-        x = np.vstack([x, *rows])
-        y = np.concatenate([y, np.zeros(sum(r.shape[0] for r in rows))])
+    return np.vstack(rows) if rows else None
+
+
+def penalized_lstsq(x: np.ndarray, y: np.ndarray, blocks: list[np.ndarray],
+                    penalties: list[np.ndarray | None]) -> np.ndarray:
+    """Least squares on x = [baseline, *blocks] with penalty rows appended (``pen @ coef = 0``)."""
+    pen = _penalty_rows(x.shape[1], blocks, penalties)
+    if pen is not None:
+        x = np.vstack([x, pen])
+        y = np.concatenate([y, np.zeros((pen.shape[0],) + y.shape[1:])])
     beta, _ = lstsq(x, y)
     return beta
 
 
-def heldout_residual(prob: Problem, axis: int, extras: list[list[np.ndarray]],
+def heldout_residual(prob: Problem, extras: list[list[np.ndarray]],
                      penalties: list[np.ndarray | None] | None = None) -> np.ndarray:
-    """Held-out residual (M,) of baseline + extra columns on one axis.
+    """Held-out residual (M, 3) of baseline + extra columns, all axes at once.
 
     ``extras[k]`` holds the extra design blocks to use for fold k (chosen on its training data);
     ``penalties`` (one per block, or None) are smoothness rows for that block's coefficients.
+    When the blocks are the same in every fold, the per-fold Gram matrices are summed from one
+    pass over the data (training Gram = total - fold), the cost that dominates long logs.
     """
-    r = np.empty(prob.n)
-    y = prob.y[:, axis]
+    r = np.empty_like(prob.y)
+    same = all(len(e) == len(extras[0]) and all(a is b for a, b in zip(e, extras[0], strict=True))
+               for e in extras)
+    if same:
+        x = np.column_stack([prob.base, *extras[0]]) if extras[0] else prob.base
+        pen = _penalty_rows(x.shape[1], extras[0], penalties or [None] * len(extras[0]))
+        grams = [(x[prob.fold == k].T @ x[prob.fold == k], x[prob.fold == k].T @ prob.y[prob.fold == k],
+                  int(np.sum(prob.fold == k))) for k in range(prob.n_folds)]
+        g_all = sum(g for g, _, _ in grams)
+        b_all = sum(b for _, b, _ in grams)
+        n_all = sum(n for _, _, n in grams)
+        for k, (gk, bk, nk) in enumerate(grams):
+            if nk == 0:
+                continue
+            g, b = g_all - gk, b_all - bk
+            if pen is not None:
+                g = g + pen.T @ pen
+            beta = gram_solve(g, b, n_all - nk)
+            test = prob.fold == k
+            r[test] = prob.y[test] - x[test] @ beta
+        return r
     for k in range(prob.n_folds):
         test = prob.fold == k
         if not test.any():
             continue
         x = np.column_stack([prob.base, *extras[k]]) if extras[k] else prob.base
         pens = penalties if penalties is not None else [None] * len(extras[k])
-        beta = penalized_lstsq(x[~test], y[~test], extras[k], pens)
-        r[test] = y[test] - x[test] @ beta
+        beta = penalized_lstsq(x[~test], prob.y[~test], extras[k], pens)
+        r[test] = prob.y[test] - x[test] @ beta
     return r
 
 

@@ -39,7 +39,7 @@ from gyrocal.daemon.session import Session, State
 from gyrocal.daemon.stillness import StillConfig, StillDetector
 from gyrocal.daemon.store import CalibrationStore
 from gyrocal.drivers import open_link
-from gyrocal.protocol.messages import Hello
+from gyrocal.protocol.messages import Hello, HelloRequest
 
 log = logging.getLogger("gyrocal.engine")
 
@@ -77,6 +77,11 @@ class Engine:
         self._stop = threading.Event()
         self._last_seq: int | None = None
         self._last_status_line = ""
+        self._next_hello_request = 0.0
+        self._next_publish = 0.0
+        # sample-to-weights latency [s]: a fixed-size reservoir of the newest values (O(1) memory)
+        self._lat = np.full(1 << 14, np.nan)
+        self._lat_i = 0
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _new_detector(self, rate_hz: float) -> StillDetector:
@@ -97,6 +102,7 @@ class Engine:
         self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
                               where=f"{self.cfg.source}: link", start=False)
         self.link.start(wait=wait)
+        self._ask_hello(time.monotonic())
         self.control = ControlServer(self.cfg.control_socket, self._on_command)
         self.control.start()
         log.info("control socket %s; state directory %s", self.cfg.control_socket, self.cfg.state_dir)
@@ -150,7 +156,11 @@ class Engine:
                 self._on_samples(block, now)
             if self.session is not None:
                 self.session.tick(now)
-            self._publish(now)
+            elif now >= self._next_hello_request and self.ring.pushed:
+                self._ask_hello(now)
+            if now >= self._next_publish:
+                self._publish(now)
+                self._next_publish = now + 0.2
             if interval is not None and now >= next_ping:
                 self.notifier.watchdog()
                 next_ping = now + interval
@@ -180,8 +190,21 @@ class Engine:
             elif kind == "reload":
                 self._reload()
 
+    def _ask_hello(self, now: float) -> None:
+        """Ask the unit to announce itself (HELLO_REQUEST): it switched on before we listened."""
+        self._next_hello_request = now + 2.0
+        try:
+            self.link.send(HelloRequest())
+        except Exception as err:  # the link may be down; the reader thread reconnects
+            log.debug("HELLO_REQUEST not sent: %s", err)
+
     def _on_message(self, msg: Any, now: float) -> None:
         if isinstance(msg, Hello):
+            s = self.session
+            if s is not None and (s.hello.serial, s.hello.boot_count) == (msg.serial, msg.boot_count):
+                log.info("HELLO from unit %d again (boot %d): same switch-on, session continues",
+                         msg.serial, msg.boot_count)
+                return
             log.info("HELLO from unit %d (firmware %s, boot %d): switch-on, new session",
                      msg.serial, msg.fw_version, msg.boot_count)
             self.last_hello = msg
@@ -192,11 +215,13 @@ class Engine:
 
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
         log.warning("link %s %s", name, detail)
-        if name == "link_up" and self.session is not None:
-            # the unit may have kept running or rebooted: re-read what it holds; a HELLO or a
-            # sequence reset will start a new session if it rebooted
-            self.session.applied = None
-            self.session._request_read(now)
+        if name == "link_up":
+            # the unit may have kept running or rebooted: ask who it is (a new boot count starts a
+            # new session) and re-read the set it holds
+            self._ask_hello(now)
+            if self.session is not None:
+                self.session.applied = None
+                self.session.request_read(now)
 
     def _start_session(self, hello: Hello, now: float) -> None:
         prior = self.store.latest(hello.serial, acked_only=True)
@@ -231,6 +256,23 @@ class Engine:
             return
         decided, still = self.detector.feed(block)
         self.session.feed(decided, still, now)
+        if decided.size:
+            self._record_latency(time.monotonic() - decided["rx"])
+
+    def _record_latency(self, lat_s: np.ndarray) -> None:
+        """Keep the newest latencies: from a sample's arrival (rx) to the weights having learnt it."""
+        lat = lat_s[-self._lat.size:]
+        idx = (self._lat_i + np.arange(lat.size)) % self._lat.size
+        self._lat[idx] = lat
+        self._lat_i = int((self._lat_i + lat.size) % self._lat.size)
+
+    def latency_percentiles_s(self) -> dict[str, float]:
+        """p50 / p99 / max of the sample-to-weights latency [s] over the newest 16384 samples."""
+        v = self._lat[np.isfinite(self._lat)]
+        if v.size == 0:
+            return {}
+        p50, p99 = np.percentile(v, [50, 99])
+        return {"p50": float(p50), "p99": float(p99), "max": float(v.max()), "n": int(v.size)}
 
     # -- commands -----------------------------------------------------------------------------
     def _command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
@@ -315,7 +357,7 @@ class Engine:
         status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
                        "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
                        "sessions": self.sessions_started, "config": self.cfg.source,
-                       "rate_hz": self.rate_hz})
+                       "rate_hz": self.rate_hz, "latency_s": self.latency_percentiles_s()})
         self.status = status
         line = f"{status['state']}: {status.get('reason', '')}"
         if line != self._last_status_line:

@@ -121,10 +121,10 @@ class Session:
         self._next_check = now
         self._next_validation_at = 0
         self._read_deadline = now
-        self._request_read(now)
+        self.request_read(now)
 
     # -- messages from the unit -------------------------------------------------------------
-    def _request_read(self, now: float) -> None:
+    def request_read(self, now: float) -> None:
         self._read_deadline = now + self.cfg.push["ack_timeout_s"]
         self.send(CoeffRead())
 
@@ -167,7 +167,7 @@ class Session:
         if self.applied is None:
             if now >= self._read_deadline:
                 log.warning("unit %s did not answer COEFF_READ; asking again", self.hello.serial)
-                self._request_read(now)
+                self.request_read(now)
             return
         if self.push is not None:
             self.push.tick(now)
@@ -290,7 +290,7 @@ class Session:
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             self.state = State.COLLECTING
             self.applied = None  # read back what the unit holds rather than assume it
-            self._request_read(now)
+            self.request_read(now)
 
     def _check_alarm(self) -> None:
         if self.validated_rms is None or len(self.monitor) < 4:

@@ -33,6 +33,7 @@ from typing import Any
 
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.errors import LinkError
+from gyrocal.protocol.messages import Sample
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +168,9 @@ class Link(ABC):
             if not self._connected:
                 try:
                     self._open()
-                except (LinkError, *self._io_errors) as err:
+                except Exception as err:  # LinkError and I/O errors; anything else is retried too
+                    if not isinstance(err, (LinkError, *self._io_errors)):
+                        log.exception("%s link: unexpected error opening %s", self.kind, self.target)
                     self._emit("reconnecting", f"{err}; next try in {delay:.1f} s")
                     self._stop_evt.wait(delay)
                     delay = min(delay * 2.0, self.backoff_max_s)
@@ -176,12 +179,15 @@ class Link(ABC):
                 self._set_up()
             try:
                 msgs = self._receive()
-            except self._io_errors as err:
+            except Exception as err:  # the device vanished (or a transport bug): close and reopen
+                if not isinstance(err, self._io_errors):
+                    log.exception("%s link: unexpected error reading %s", self.kind, self.target)
                 self._counts["io_errors"] += 1
                 self._connected = False
                 self._close_quietly()
                 if not self._stop_evt.is_set():
                     self._emit("link_lost", f"{self.target}: {err}")
+                    self._stop_evt.wait(self.backoff_initial_s)  # a flapping device cannot spin us
                 continue
             if msgs:
                 self._dispatch(msgs)
@@ -200,7 +206,7 @@ class Link(ABC):
         ring, counts = self.ring, self._counts
         for m in msgs:
             try:
-                if type(m).__name__ == "Sample":
+                if type(m) is Sample:
                     ring.push(m, rx)
                     counts["samples"] += 1
                 else:

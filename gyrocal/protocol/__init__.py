@@ -12,6 +12,7 @@ from gyrocal.protocol.messages import (
     CoeffTransferFailed,
     CoeffWrite,
     Hello,
+    HelloRequest,
     NakReason,
     Sample,
     coeff_set_crc,
@@ -22,6 +23,7 @@ from gyrocal.protocol.termsets import names_for, register, terms_id
 
 __all__ = [
     "CoeffAck", "CoeffNak", "CoeffRead", "CoeffReport", "CoeffTransferFailed", "CoeffWrite", "DecoderStats",
+    "HelloRequest",
     "FrameDecoder", "Hello", "NakReason", "Sample", "coeff_set_crc", "encode_frame", "names_for",
     "register", "terms_id",
 ]

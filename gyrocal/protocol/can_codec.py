@@ -40,6 +40,7 @@ from gyrocal.protocol.messages import (
     CoeffReport,
     CoeffWrite,
     Hello,
+    HelloRequest,
     Sample,
     check_int,
     coeff_set_bytes,
@@ -99,32 +100,33 @@ class CanCodec:
             return self._sample(msg)
         if isinstance(msg, Hello):
             major, minor, patch = parse_fw_version(msg.fw_version)
-            check_int("serial", msg.serial, 0, 0xFFFFFFFF)
-            check_int("boot_count", msg.boot_count, 0, 0xFFFFFFFF)
-            check_int("rate_hz", msg.rate_hz, 0, 0xFFFF)
+            serial = check_int("serial", msg.serial, 0, 0xFFFFFFFF)
+            boots = check_int("boot_count", msg.boot_count, 0, 0xFFFFFFFF)
+            rate = check_int("rate_hz", msg.rate_hz, 0, 0xFFFF)
             self._last_anchor_us = None
             return [
-                self._frame("HELLO", {"SERIAL": msg.serial, "FW_MAJOR": major, "FW_MINOR": minor,
+                self._frame("HELLO", {"SERIAL": serial, "FW_MAJOR": major, "FW_MINOR": minor,
                                       "FW_PATCH": patch}),
-                self._frame("HELLO_BOOT", {"BOOT_COUNT": msg.boot_count, "RATE_HZ": msg.rate_hz,
-                                           "SERIAL_LO": msg.serial & 0xFFFF}),
+                self._frame("HELLO_BOOT", {"BOOT_COUNT": boots, "RATE_HZ": rate,
+                                           "SERIAL_LO": serial & 0xFFFF}),
             ]
         if isinstance(msg, CoeffWrite | CoeffReport):
             names = ("COEFF_BEGIN", "COEFF_DATA", "COEFF_COMMIT") if isinstance(msg, CoeffWrite) else (
                 "REPORT_BEGIN", "REPORT_DATA", "REPORT_END")
             return self._coeff_set(msg, *names)
         if isinstance(msg, CoeffAck):
-            check_int("version", msg.version, 0, CAN_VERSION_MAX)
-            check_int("crc", msg.crc, 0, 0xFFFFFFFF)
-            return [self._frame("COEFF_ACK", {"CAL_VERSION": msg.version, "CRC": msg.crc})]
+            version = check_int("version", msg.version, 0, CAN_VERSION_MAX)
+            crc = check_int("crc", msg.crc, 0, 0xFFFFFFFF)
+            return [self._frame("COEFF_ACK", {"CAL_VERSION": version, "CRC": crc})]
         if isinstance(msg, CoeffNak):
-            check_int("version", msg.version, 0, CAN_VERSION_MAX)
-            check_int("crc", msg.crc, 0, 0xFFFFFFFF)
-            check_int("reason", int(msg.reason), 0, 255)
-            return [self._frame("COEFF_NAK", {"REASON": int(msg.reason), "CAL_VERSION": msg.version,
-                                              "CRC": msg.crc})]
+            version = check_int("version", msg.version, 0, CAN_VERSION_MAX)
+            crc = check_int("crc", msg.crc, 0, 0xFFFFFFFF)
+            reason = check_int("reason", msg.reason, 0, 255)
+            return [self._frame("COEFF_NAK", {"REASON": reason, "CAL_VERSION": version, "CRC": crc})]
         if isinstance(msg, CoeffRead):
             return [can.Message(arbitration_id=self.ids["COEFF_READ"], data=b"", is_extended_id=False)]
+        if isinstance(msg, HelloRequest):
+            return [can.Message(arbitration_id=self.ids["HELLO_REQUEST"], data=b"", is_extended_id=False)]
         raise ProtocolError(f"{type(msg).__name__} has no CAN frames")
 
     def _sample(self, s: Sample) -> list[can.Message]:
@@ -149,14 +151,15 @@ class CanCodec:
         return frames
 
     def _coeff_set(self, msg: CoeffWrite | CoeffReport, begin: str, data: str, end: str) -> list[can.Message]:
-        check_int("version", msg.version, 0, CAN_VERSION_MAX)
-        body = coeff_set_bytes(msg.version, msg.terms_id, msg.coeffs_dps)[7:]
+        version = check_int("version", msg.version, 0, CAN_VERSION_MAX)
+        terms = check_int("terms_id", msg.terms_id, 0, 0xFFFF)
+        body = coeff_set_bytes(version, terms, msg.coeffs_dps)[7:]
         n = len(msg.coeffs_dps[0])
-        frames = [self._frame(begin, {"CAL_VERSION": msg.version, "TERMS_ID": msg.terms_id, "N_TERMS": n})]
+        frames = [self._frame(begin, {"CAL_VERSION": version, "TERMS_ID": terms, "N_TERMS": n})]
         words = struct.unpack(f"<{len(body) // 4}I", body)
-        ver_lo = msg.version & 0xFFFF
+        ver_lo = version & 0xFFFF
         frames += [self._frame(data, {"CHUNK": k, "CAL_VERSION_LO": ver_lo, "WORD": w})
                    for k, w in enumerate(words)]
-        crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
-        frames.append(self._frame(end, {"CAL_VERSION": msg.version, "CRC": crc}))
+        crc = coeff_set_crc(version, terms, msg.coeffs_dps)
+        frames.append(self._frame(end, {"CAL_VERSION": version, "CRC": crc}))
         return frames

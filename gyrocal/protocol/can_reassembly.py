@@ -29,6 +29,7 @@ from gyrocal.protocol.messages import (
     CoeffTransferFailed,
     CoeffWrite,
     Hello,
+    HelloRequest,
     NakReason,
     Sample,
     coeff_set_crc,
@@ -166,11 +167,13 @@ class CanDecoder:
         gz, az, t_lo = c
         t20 = (t_hi << 16) | t_lo
         last = self._last_seq
+        delta = 1
         if last is None:
             seq = seq16  # the high bits start at 0 when this decoder starts (docs/protocol.md)
         else:
             d = (seq16 - last) & 0xFFFF
-            seq = (last + (d if d < 0x8000 else d - 0x10000)) & 0xFFFFFFFF
+            delta = d if d < 0x8000 else d - 0x10000  # signed steps since the previous sample
+            seq = (last + delta) & 0xFFFFFFFF
         anchor = self._anchor
         if anchor is not None and anchor[0] == seq16:
             t_us = anchor[1]
@@ -179,23 +182,23 @@ class CanDecoder:
                 st.incomplete += 1  # the anchor and the sample disagree: do not guess
                 st.resyncs += 1
                 return []
-        elif last is None:
-            st.unanchored += 1
-            return []
         else:
-            steps = seq - last if seq >= last else seq - last + (1 << 32)
-            t_est = self._last_t_us + steps * self._dt_us
+            if anchor is not None and 0 < (seq16 - anchor[0]) & 0xFFFF < 0x8000:
+                self._anchor = None  # its own sample was lost; never apply it to a later one
+            if last is None:
+                st.unanchored += 1
+                return []
+            t_est = self._last_t_us + delta * self._dt_us
             t_us = t_est + ((t20 - t_est + T20 // 2) % T20) - T20 // 2
-        if last is not None:
-            if seq != (last + 1) & 0xFFFFFFFF:
-                st.seq_gaps += 1
-                missing = (seq - last - 1) & 0xFFFFFFFF
-                if missing < 0x80000000:
-                    st.lost_samples += missing
-            elif t_us > self._last_t_us:
-                self._dt_us = t_us - self._last_t_us
-        self._last_seq = seq
-        self._last_t_us = t_us
+        if last is not None and delta != 1:
+            st.seq_gaps += 1
+            if delta > 1:
+                st.lost_samples += delta - 1
+        elif last is not None and t_us > self._last_t_us:
+            self._dt_us = t_us - self._last_t_us
+        if last is None or delta > 0:  # a late older sample is passed on but does not move the state
+            self._last_seq = seq
+            self._last_t_us = t_us
         return [Sample(seq, t_us / US_PER_S, (gx / GYRO_PER_DPS, gy / GYRO_PER_DPS, gz / GYRO_PER_DPS),
                        (ax / ACCEL_PER_G_CAN, ay / ACCEL_PER_G_CAN, az / ACCEL_PER_G_CAN), temp / TEMP_PER_C)]
 
@@ -226,6 +229,9 @@ class CanDecoder:
 
     def _on_coeff_read(self, raw: dict[str, int]) -> list[object]:
         return [CoeffRead()]
+
+    def _on_hello_request(self, raw: dict[str, int]) -> list[object]:
+        return [HelloRequest()]
 
     # -- coefficient transfers -----------------------------------------------------------------
     def _begin(self, old: _Transfer | None, raw: dict[str, int]) -> _Transfer:

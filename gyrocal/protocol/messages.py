@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import binascii
 import math
+import operator
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -152,6 +153,16 @@ class CoeffRead:
 
 
 @dataclass(frozen=True, slots=True)
+class HelloRequest:
+    """Host -> unit: announce yourself (the unit answers with Hello, boot counter unchanged).
+
+    A unit sends HELLO once, at switch-on. A host that starts, restarts or reconnects after that
+    moment (a daemon restarted by its watchdog; a pty or CAN listener opened late) would otherwise
+    never learn which unit it talks to until the next power cycle.
+    """
+
+
+@dataclass(frozen=True, slots=True)
 class CoeffTransferFailed:
     """Local event of the CAN decoder on the unit side, never sent on a wire.
 
@@ -164,20 +175,24 @@ class CoeffTransferFailed:
     reason: int
 
 
-Message = Sample | Hello | CoeffWrite | CoeffReport | CoeffAck | CoeffNak | CoeffRead
+Message = Sample | Hello | HelloRequest | CoeffWrite | CoeffReport | CoeffAck | CoeffNak | CoeffRead
 
 
 def check_int(name: str, value: int, lo: int, hi: int) -> int:
-    """Return value if lo <= value <= hi, else raise ProtocolError naming the field and its range."""
-    if not isinstance(value, int) or not lo <= value <= hi:
+    """Return value as int if it is an integer (numpy ones too) in lo..hi, else raise ProtocolError."""
+    try:
+        num = operator.index(value)
+    except TypeError:
+        raise ProtocolError(f"{name}={value!r} must be an integer") from None
+    if not lo <= num <= hi:
         raise ProtocolError(f"{name}={value!r} is outside its wire range {lo}..{hi}")
-    return value
+    return num
 
 
 def quantise(name: str, value: float, per_unit: int, lo: int, hi: int) -> int:
     """Round a physical value to its integer wire count; raise ProtocolError if it does not fit."""
     try:
-        raw = round(value * per_unit)
+        raw = int(round(value * per_unit))
     except (TypeError, ValueError, OverflowError) as err:
         raise ProtocolError(f"{name}={value!r} cannot be encoded: {err}") from err
     if not lo <= raw <= hi:
@@ -211,8 +226,8 @@ def coeff_set_bytes(version: int, terms_id: int, coeffs_dps: Sequence[Sequence[f
     if any(len(r) != n for r in rows):
         raise ProtocolError(f"coeffs_dps rows have lengths {[len(r) for r in rows]}; they must be equal")
     check_int("n_terms", n, 0, MAX_TERMS)
-    check_int("version", version, 0, 0xFFFFFFFF)
-    check_int("terms_id", terms_id, 0, 0xFFFF)
+    version = check_int("version", version, 0, 0xFFFFFFFF)
+    terms_id = check_int("terms_id", terms_id, 0, 0xFFFF)
     flat = [c for r in rows for c in r]
     if not all(math.isfinite(c) for c in flat):
         raise ProtocolError("coeffs_dps holds NaN or Inf; the unit cannot apply it")

@@ -32,6 +32,7 @@ from gyrocal.protocol.messages import (
     CoeffReport,
     CoeffWrite,
     Hello,
+    HelloRequest,
     NakReason,
     Sample,
     check_int,
@@ -51,6 +52,7 @@ CRC_SIZE = 4
 MAX_FRAME = HEADER_SIZE + MAX_PAYLOAD + CRC_SIZE
 
 T_HELLO = 0x01
+T_HELLO_REQUEST = 0x03
 T_SAMPLE = 0x02
 T_COEFF_WRITE = 0x10
 T_COEFF_ACK = 0x11
@@ -85,6 +87,7 @@ _LENGTH_OK: dict[int, Callable[[int], bool]] = {
     T_COEFF_ACK: lambda n: n == ACK_PAYLOAD.size,
     T_COEFF_NAK: lambda n: n == NAK_PAYLOAD.size,
     T_COEFF_READ: lambda n: n == 0,
+    T_HELLO_REQUEST: lambda n: n == 0,
     T_COEFF_WRITE: _coeff_len_ok,
     T_COEFF_REPORT: _coeff_len_ok,
 }
@@ -116,24 +119,26 @@ def encode_payload(msg: object) -> tuple[int, bytes]:
         return T_SAMPLE, _sample_payload(msg)
     if isinstance(msg, Hello):
         major, minor, patch = parse_fw_version(msg.fw_version)
-        check_int("serial", msg.serial, 0, 0xFFFFFFFF)
-        check_int("boot_count", msg.boot_count, 0, 0xFFFFFFFF)
-        check_int("rate_hz", msg.rate_hz, 0, 0xFFFF)
-        return T_HELLO, HELLO_PAYLOAD.pack(msg.serial, major, minor, patch, msg.boot_count, msg.rate_hz)
+        serial = check_int("serial", msg.serial, 0, 0xFFFFFFFF)
+        boots = check_int("boot_count", msg.boot_count, 0, 0xFFFFFFFF)
+        rate = check_int("rate_hz", msg.rate_hz, 0, 0xFFFF)
+        return T_HELLO, HELLO_PAYLOAD.pack(serial, major, minor, patch, boots, rate)
     if isinstance(msg, CoeffWrite | CoeffReport):
         typ = T_COEFF_WRITE if isinstance(msg, CoeffWrite) else T_COEFF_REPORT
         return typ, coeff_set_bytes(msg.version, msg.terms_id, msg.coeffs_dps)
     if isinstance(msg, CoeffAck):
-        check_int("version", msg.version, 0, 0xFFFFFFFF)
-        check_int("crc", msg.crc, 0, 0xFFFFFFFF)
-        return T_COEFF_ACK, ACK_PAYLOAD.pack(msg.version, msg.crc)
+        version = check_int("version", msg.version, 0, 0xFFFFFFFF)
+        crc = check_int("crc", msg.crc, 0, 0xFFFFFFFF)
+        return T_COEFF_ACK, ACK_PAYLOAD.pack(version, crc)
     if isinstance(msg, CoeffNak):
-        check_int("version", msg.version, 0, 0xFFFFFFFF)
-        check_int("crc", msg.crc, 0, 0xFFFFFFFF)
-        check_int("reason", int(msg.reason), 0, 255)
-        return T_COEFF_NAK, NAK_PAYLOAD.pack(msg.version, msg.crc, int(msg.reason))
+        version = check_int("version", msg.version, 0, 0xFFFFFFFF)
+        crc = check_int("crc", msg.crc, 0, 0xFFFFFFFF)
+        reason = check_int("reason", msg.reason, 0, 255)
+        return T_COEFF_NAK, NAK_PAYLOAD.pack(version, crc, reason)
     if isinstance(msg, CoeffRead):
         return T_COEFF_READ, b""
+    if isinstance(msg, HelloRequest):
+        return T_HELLO_REQUEST, b""
     raise ProtocolError(f"{type(msg).__name__} has no serial frame type")
 
 
@@ -172,6 +177,8 @@ def decode_payload(typ: int, payload: bytes | memoryview) -> object:
             return CoeffNak(version, crc, _nak_reason(reason))
         if typ == T_COEFF_READ and len(payload) == 0:
             return CoeffRead()
+        if typ == T_HELLO_REQUEST and len(payload) == 0:
+            return HelloRequest()
     except struct.error as err:
         raise ProtocolError(f"frame type 0x{typ:02X}: payload of {len(payload)} bytes: {err}") from err
     raise ProtocolError(f"frame type 0x{typ:02X} with {len(payload)} payload bytes is not known")

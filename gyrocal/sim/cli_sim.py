@@ -25,7 +25,7 @@ import numpy as np
 
 from gyrocal.errors import ConfigError
 from gyrocal.sim.recorder import Recorder
-from gyrocal.sim.runner import Runner, write_json_atomic
+from gyrocal.sim.runner import Runner
 from gyrocal.sim.schedule import load_schedule, tumble
 from gyrocal.sim.truth import TruthModel
 from gyrocal.sim.unit import Faults, VirtualUnit
@@ -126,7 +126,6 @@ def main(args: argparse.Namespace) -> int:
     transport = _open_transport(args)
     recorder = None
     try:
-        print(transport.describe(), flush=True)
         if args.record:
             meta = {"source": "gyrocal sim", "serial": args.serial, "seed": args.seed, "rate_hz": args.rate,
                     "sensor": "virtual strapdown unit"}
@@ -136,13 +135,14 @@ def main(args: argparse.Namespace) -> int:
                 raise ConfigError(f"--record {args.record}: cannot write ({err.strerror})") from err
         runner = Runner(unit, transport, duration_s=args.duration, status_path=args.status_json,
                         power_cycle_every_s=args.power_cycle_every, recorder=recorder,
-                        info={"seed": args.seed})
-        _install_signals(runner)
+                        info={"seed": args.seed}, flash_path=args.flash)
+        _install_signals(runner)  # before the address goes out: a caller may signal at once
+        print(transport.describe(), flush=True)
         runner.run()
     finally:
         transport.close()
-        if args.flash:
-            write_json_atomic(args.flash, unit.flash_state())
+        if recorder is not None:
+            recorder.close()
     return 0
 
 

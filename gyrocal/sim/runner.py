@@ -54,13 +54,15 @@ class Runner:
     so the host can read the tail. ``power_cycle_every_s`` [s]: power-cycle after exactly this much
 unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = never).
     ``status_path``: JSON status, rewritten on every state change and every ``status_every_s``.
+    ``flash_path``: the unit's flash (boot counter, applied set) as JSON, written at every switch-on
+    and every applied set, as firmware would, so it survives even a SIGKILL of the process.
     """
 
     def __init__(
         self, unit: VirtualUnit, transport: Transport, *, duration_s: float = 0.0, batch_s: float = 0.004,
         max_batch_s: float = 0.1, status_path: str | Path | None = None, status_every_s: float = 1.0,
         power_cycle_every_s: float = 0.0, recorder: Recorder | None = None, linger_s: float = 0.5,
-        info: dict[str, Any] | None = None,
+        info: dict[str, Any] | None = None, flash_path: str | Path | None = None,
     ) -> None:
         self.unit, self.transport = unit, transport
         self.total_samples = round(duration_s * unit.rate_hz) if duration_s > 0 else 0
@@ -69,6 +71,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         self.session_samples = round(power_cycle_every_s * unit.rate_hz) if power_cycle_every_s > 0 else 0
         self.recorder, self.linger_s = recorder, linger_s
         self.info = dict(info or {})
+        self.flash_path = flash_path
         self._cycle_requested = False
         self._stop_requested = False
         self._session_t0 = 0.0
@@ -111,6 +114,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
 
     def _power_on(self) -> None:
         hello = self.unit.power_on()
+        self.save_flash()
         self._session_t0 = time.monotonic()
         self.transport.send(hello)
         log.info("power on: boot %d", self.unit.boot_count)
@@ -150,6 +154,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
                 self.replies_sent += len(replies)
         if self.unit.applied is not before:
             log.info("applied coefficient set version %s", self.unit.applied and self.unit.applied.version)
+            self.save_flash()
             self.write_status()
 
     def _linger(self) -> None:
@@ -170,6 +175,14 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         if self.recorder is not None:
             doc.update(record=str(self.recorder.path), recorded_rows=self.recorder.rows)
         return doc
+
+    def save_flash(self) -> None:
+        if self.flash_path is None:
+            return
+        try:
+            write_json_atomic(self.flash_path, self.unit.flash_state())
+        except OSError as err:
+            log.warning("cannot write flash %s: %s", self.flash_path, err)
 
     def write_status(self, running: bool = True) -> None:
         if self.status_path is None:

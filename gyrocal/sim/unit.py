@@ -11,9 +11,10 @@ The unit outputs the *compensated* rate: raw gyro minus the applied set's compen
 per sample from the measured accelerometer [g], the sensor temperature [degC], its rate [degC/s]
 and the time since switch-on [s] (the last two from the unit's own thermal state and clock).
 
-``handle`` answers the host: COEFF_WRITE is validated and applied atomically, then acked with the
-CRC of the set as applied (``coeff_set_crc``), or NAKed with a reason; COEFF_READ returns a report.
-Fault injection (``Faults``) lets daemon tests exercise NAKs, lost acks and a silent switch-on.
+``handle`` answers the host: HELLO_REQUEST with this boot's HELLO; COEFF_WRITE is validated and
+applied atomically, then acked with the CRC of the set as applied (``coeff_set_crc``), or NAKed
+with a reason; COEFF_READ returns a report. Fault injection (``Faults``) lets daemon tests exercise
+NAKs, lost acks and a silent switch-on.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from gyrocal.protocol.messages import (
     CoeffTransferFailed,
     CoeffWrite,
     Hello,
+    HelloRequest,
     NakReason,
     Sample,
     coeff_set_crc,
@@ -120,7 +122,10 @@ class VirtualUnit:
         """Switch on: count the boot, start a new session (new bias); return the HELLO to send."""
         self.boot_count += 1
         self.stream = SessionStream(self.truth, self.schedule, self.rate_hz, self.seed, self.boot_count)
-        if self.faults.never_hello:
+        return self._hello()
+
+    def _hello(self) -> list[Any]:
+        if self.faults.never_hello or self.stream is None:
             return []
         return [Hello(serial=self.serial, fw_version=self.fw_version, boot_count=self.boot_count,
                       rate_hz=int(round(self.rate_hz)))]
@@ -162,9 +167,17 @@ class VirtualUnit:
         """Answer one message from the host; returns the replies to send (maybe none)."""
         if isinstance(msg, CoeffWrite):
             return self._write(msg)
+        if isinstance(msg, HelloRequest):  # a host that started listening late: same boot count
+            return self._hello()
         if isinstance(msg, CoeffTransferFailed):  # a CAN transfer that did not commit cleanly
             self.writes["naked"] += 1
             return [CoeffNak(version=msg.version, crc=msg.crc, reason=msg.reason)]
+        if isinstance(msg, HelloRequest):
+            # the host asks who we are: the same HELLO as at switch-on, boot counter unchanged
+            if self.stream is None or self.faults.never_hello:
+                return []
+            return [Hello(serial=self.serial, fw_version=self.fw_version, boot_count=self.boot_count,
+                          rate_hz=int(round(self.rate_hz)))]
         if isinstance(msg, CoeffRead):
             a = self.applied
             if a is None:

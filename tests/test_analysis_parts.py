@@ -1,0 +1,117 @@
+"""The analysis's parts: still detection, rank-aware fit, moving average, loaders, report, CLI errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gyrocal.analysis.baseline import lstsq
+from gyrocal.analysis.convert import LOADERS, load_dataset
+from gyrocal.analysis.hidden import write_hidden_log
+from gyrocal.analysis.holdout import moving_average
+from gyrocal.analysis.segments import detect_still
+from gyrocal.cli import main
+from gyrocal.logformat import read_log
+from gyrocal.model.terms import SEED000_TERMS, TermSpec
+from gyrocal.sim.schedule import tumble
+from gyrocal.sim.truth import SessionStream, TruthModel
+
+CONTRACT2_FINDING_KEYS = {"cause", "axes", "explained_fraction", "p_value", "test", "params", "evidence"}
+
+
+def test_still_detector_agrees_with_the_simulator_still_flag() -> None:
+    cols = SessionStream(TruthModel(), tumble(), 50.0, seed=3, boot=0).chunk(50 * 120)
+    still = detect_still(cols, 50.0)
+    truth = cols["still"].astype(bool)
+    assert np.mean(truth[still]) == 1.0  # never lets a move in
+    assert still.sum() > 0.5 * truth.sum()  # keeps most of each dwell (margins trimmed)
+
+
+def test_rank_aware_fit_sees_the_seed000_rank_9_and_keeps_the_fit() -> None:
+    rng = np.random.default_rng(0)
+    g = rng.normal(size=(500, 3))
+    g /= np.linalg.norm(g, axis=1)[:, None]
+    x = TermSpec.parse(SEED000_TERMS).design({"ax": g[:, 0], "ay": g[:, 1], "az": g[:, 2]})
+    y = x @ rng.normal(size=10) + rng.normal(0, 1e-3, 500)
+    beta, rank = lstsq(x, y)
+    assert rank == 9
+    np.testing.assert_allclose(x @ beta, np.linalg.lstsq(x, y, rcond=None)[0] @ x.T, atol=1e-9)
+
+
+def test_moving_average_stays_within_runs_and_counts_short_runs_once() -> None:
+    r = np.array([1.0, 1, 1, 1, 5, 5, 9])
+    run = np.array([0, 0, 0, 0, 1, 1, 2])
+    vals, starts = moving_average(r, run, 3)
+    assert sorted(vals.tolist()) == [1.0, 1.0, 5.0, 9.0]
+    assert sorted(starts.tolist()) == [0, 1, 4, 6]
+
+
+@pytest.mark.parametrize("name", sorted(set(LOADERS) - {"imu_tk"}))
+def test_each_loader_converts_units_to_the_log_format(name: str) -> None:
+    log = load_dataset(name)
+    assert len(log) > 1000
+    norm = np.median(np.linalg.norm(log.accel_g, axis=1))
+    assert 0.9 < norm < 1.1  # specific force in g
+    assert np.all(np.abs(np.median(log.gyro_dps, axis=0)) < 10.0)  # rates in deg/s, at rest
+    if name == "sunsided":
+        assert "temp" in log.columns and 15 < np.median(log["temp"]) < 40
+        assert np.unique(log["session"]).size == 6
+
+
+def test_convert_writes_a_log_that_read_log_accepts(tmp_path: Path) -> None:
+    out = tmp_path / "tomi.csv"
+    assert main(["convert", "tomisuarez", str(out)]) == 0
+    log = read_log(out)
+    assert len(log) > 9000 and log.metadata["dataset"] == "tomisuarez_mpu6050"
+    assert main(["convert", "nosuch", str(out)]) == 2
+
+
+def test_analyze_report_json_and_spec_follow_contract_2(tmp_path: Path) -> None:
+    log = tmp_path / "w.csv"
+    write_hidden_log(log, 3, causes=["warmup"])
+    out, rep = tmp_path / "w.json", tmp_path / "rep"
+    assert main(["analyze", str(log), "--json", str(out), "--report", str(rep), "--quiet"]) == 0
+    r = json.loads(out.read_text())
+    assert set(r["findings"][0]) == CONTRACT2_FINDING_KEYS
+    for part in ("baseline", "extended"):
+        assert {"terms", "holdout_rms", "holdout_rms_raw"} <= set(r[part])
+        assert set(r[part]["holdout_rms"]) == {"x", "y", "z"}
+    ratio = r["baseline"]["holdout_rms"]["x"] / r["extended"]["holdout_rms"]["x"]
+    assert r["gain"]["x"] == pytest.approx(ratio)
+    assert {"before", "after"} <= set(r["fidelity"])
+    md = (rep / "report.md").read_text()
+    assert "warmup" in md and (rep / "allan_before_after.png").stat().st_size > 1000
+    assert list(rep.glob("finding_1_warmup.png"))
+    spec = Path(r["extended"]["spec_file"])
+    import yaml
+
+    doc = yaml.safe_load(spec.read_text())
+    assert any(t.startswith("exp(-t_on/") for t in doc["terms"])
+    TermSpec.parse(doc["terms"])  # loadable as a model spec
+
+
+def test_analyze_too_few_still_samples_is_a_one_line_error(tmp_path: Path, capsys) -> None:
+    p = tmp_path / "short.csv"
+    p.write_text("t,wx,wy,wz,ax,ay,az\n" + "\n".join(f"{i / 100},0.1,0.2,0.3,0,0,1" for i in range(50)))
+    assert main(["analyze", str(p), "--json", str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("gyrocal: error:") and "still samples" in err[-1]
+
+
+def test_findings_map_onto_the_truth_model_so_the_simulation_can_rerun(tmp_path: Path) -> None:
+    from gyrocal.analysis.extend import truth_from_result
+
+    log = tmp_path / "w.csv"
+    hidden = write_hidden_log(log, 2, causes=["warmup"])
+    out = tmp_path / "w.json"
+    assert main(["analyze", str(log), "--json", str(out), "--quiet"]) == 0
+    model = truth_from_result(json.loads(out.read_text()))
+    for k, a in enumerate("xyz"):
+        if a in hidden.axes["warmup"]:
+            assert model.effects.warmup_dps[k] == pytest.approx(hidden.effects.warmup_dps[k], rel=0.3)
+        else:
+            assert model.effects.warmup_dps[k] == 0.0
+    assert model.effects.warmup_tau_s == pytest.approx(hidden.effects.warmup_tau_s, rel=0.3)

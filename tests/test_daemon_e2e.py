@@ -1,0 +1,241 @@
+"""End to end: `gyrocal run` and `gyrocal sim` as separate processes, over a pty and over CAN.
+
+These drive the real daemon the way systemd would (a subprocess with a config file, signals, a
+NOTIFY_SOCKET) against the virtual unit in another process, and talk to it only through its
+control socket. Timeouts are generous upper bounds for a loaded 2-core machine, never assertions.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from gyrocal.daemon.control import request
+from gyrocal.daemon.virtual import free_udp_port
+from gyrocal.sim.schedule import tumble
+
+pytestmark = pytest.mark.slow
+PY = [sys.executable, "-m", "gyrocal.cli"]
+
+
+def _schedule(tmp: Path) -> Path:
+    s = tumble(0.8, 0.25)
+    path = tmp / "schedule.yaml"
+    path.write_text(yaml.safe_dump({"dwell_s": s.dwell_s, "move_s": s.move_s, "poses": s.poses_g.tolist()}))
+    return path
+
+
+def start_sim(tmp: Path, *args: str, name: str = "unit") -> subprocess.Popen[str]:
+    cmd = [*PY, "sim", "--rate", "500", "--seed", "3", "--schedule", str(_schedule(tmp)),
+           "--status-json", str(tmp / f"{name}.json"), *args]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def start_daemon(tmp: Path, link: dict[str, Any], env: dict[str, str] | None = None,
+                 **sections: Any) -> tuple[subprocess.Popen[str], Path]:
+    sock = tmp / "control.sock"
+    cfg = {"link": link, "state_dir": str(tmp / "state"), "control_socket": str(sock),
+           "validation": {"block_s": 0.25}, **sections}
+    path = tmp / "gyrocal.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    log = (tmp / "daemon.log").open("w")
+    proc = subprocess.Popen([*PY, "run", "--config", str(path)], stdout=log, stderr=subprocess.STDOUT,
+                            text=True, env={**os.environ, **(env or {})})
+    return proc, sock
+
+
+def wait_for(pred: Callable[[], Any], timeout_s: float, what: str, tmp: Path | None = None) -> Any:
+    end = time.monotonic() + timeout_s
+    last: Any = None
+    while time.monotonic() < end:
+        try:
+            last = pred()
+        except Exception as err:  # the daemon may not be listening yet
+            last = err
+        if last and not isinstance(last, Exception):
+            return last
+        time.sleep(0.2)
+    log = (tmp / "daemon.log").read_text()[-3000:] if tmp is not None else ""
+    raise AssertionError(f"timed out waiting for {what}; last: {last!r}\n{log}")
+
+
+def status(sock: Path) -> dict[str, Any]:
+    return request(sock, {"cmd": "status"}, timeout=5.0)
+
+
+def unit_status(tmp: Path, name: str = "unit") -> dict[str, Any]:
+    return json.loads((tmp / f"{name}.json").read_text())
+
+
+def stop(proc: subprocess.Popen[str]) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            return proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+            return -9
+    return proc.returncode
+
+
+def _acked(sock: Path) -> dict[str, Any] | None:
+    st = status(sock)
+    push = st.get("last_push") or {}
+    return st if push.get("status") == "acked" else None
+
+
+def _check_tenfold(tmp: Path) -> None:
+    u = wait_for(lambda: unit_status(tmp) if unit_status(tmp).get("applied_version") else None, 10,
+                 "the unit to report its applied set")
+    raw, comp = u["drift_rms_raw_dps"], u["drift_rms_compensated_dps"]
+    for a in "xyz":
+        assert comp[a] * 10 <= raw[a], (a, raw[a], comp[a])
+
+
+def _control_commands(sock: Path, tmp_path: Path) -> None:
+    """status, recalibrate and rollback through the CLI, as an operator would type them."""
+    out = subprocess.run([*PY, "status", "--json", "--socket", str(sock)], capture_output=True,
+                         text=True, timeout=30)
+    assert out.returncode == 0 and json.loads(out.stdout)["state"] == "MONITORING"
+    out = subprocess.run([*PY, "status", "--socket", str(sock)], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0 and "MONITORING" in out.stdout
+    out = subprocess.run([*PY, "recalibrate", "--socket", str(sock)], capture_output=True, text=True,
+                         timeout=30)
+    assert out.returncode == 0, out.stderr
+    wait_for(lambda: status(sock)["sessions"] >= 2, 10, "a new session", tmp_path)
+    # nothing earlier to roll back to: a clear refusal, exit 1, and the daemon lives on
+    out = subprocess.run([*PY, "rollback", "--socket", str(sock)], capture_output=True, text=True,
+                         timeout=30)
+    assert out.returncode == 1 and "no earlier" in (out.stdout + out.stderr)
+    out = subprocess.run([*PY, "rollback", "--to", "1", "--socket", str(sock)], capture_output=True,
+                         text=True, timeout=30)
+    assert out.returncode == 0, out.stdout + out.stderr
+    wait_for(lambda: (status(sock).get("last_push") or {}).get("version") == 1 and
+             status(sock)["last_push"]["status"] == "acked", 20, "the rollback push", tmp_path)
+
+
+def test_daemon_and_unit_over_a_pty_push_and_cut_drift_tenfold(tmp_path: Path) -> None:
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(tmp_path / "unit.pty"))
+    daemon = None
+    try:
+        wait_for(lambda: (tmp_path / "unit.pty").exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(tmp_path / "unit.pty")})
+        st = wait_for(lambda: _acked(sock), 120, "an acked push", tmp_path)
+        assert st["last_push"]["readback_ok"] and st["state"] == "MONITORING"
+        assert st["link"]["frames"] > 0
+        _check_tenfold(tmp_path)
+        _control_commands(sock, tmp_path)
+        assert stop(daemon) == 0
+        assert "stopped" in (tmp_path / "daemon.log").read_text()
+    finally:
+        if daemon is not None:
+            stop(daemon)
+        stop(sim)
+
+
+def test_daemon_and_unit_over_can_udp_multicast_push_and_cut_drift_tenfold(tmp_path: Path) -> None:
+    port = free_udp_port()
+    can = {"interface": "udp_multicast", "channel": "239.74.163.2", "port": port}
+    daemon, sock = start_daemon(tmp_path, {"kind": "can", "can": can})
+    sim = None
+    try:
+        wait_for(lambda: status(sock), 20, "the daemon's control socket", tmp_path)
+        sim = start_sim(tmp_path, "--link", "can", "--can-interface", "udp_multicast",
+                        "--can-channel", can["channel"], "--can-port", str(port))
+        st = wait_for(lambda: _acked(sock), 120, "an acked push over CAN", tmp_path)
+        assert st["last_push"]["readback_ok"]
+        _check_tenfold(tmp_path)
+    finally:
+        stop(daemon)
+        if sim is not None:
+            stop(sim)
+
+
+def test_garbage_and_a_unit_that_never_says_hello_leave_the_daemon_waiting_and_saying_why(
+        tmp_path: Path) -> None:
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(tmp_path / "unit.pty"),
+                    "--never-hello", "--garbage-rate", "0.05")
+    daemon = None
+    try:
+        wait_for(lambda: (tmp_path / "unit.pty").exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(tmp_path / "unit.pty")})
+        st = wait_for(lambda: (s := status(sock)).get("ring", {}).get("pushed", 0) > 2000 and s, 30,
+                      "samples to arrive", tmp_path)
+        assert st["state"] == "WAIT_HELLO"
+        assert "without one" in st["reason"]
+        errors = st["link"]["errors"]
+        assert errors["garbage_bytes"] > 0 and errors["resyncs"] > 0
+        assert daemon.poll() is None
+    finally:
+        if daemon is not None:
+            assert stop(daemon) == 0
+        stop(sim)
+
+
+def test_link_vanishes_and_returns_the_daemon_reconnects_and_recalibrates(tmp_path: Path) -> None:
+    flash = tmp_path / "flash.json"
+    pty = tmp_path / "unit.pty"
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty), "--flash", str(flash))
+    daemon = None
+    try:
+        wait_for(lambda: pty.exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(pty), "reconnect_max_s": 0.5})
+        wait_for(lambda: status(sock).get("state") == "COLLECTING", 30, "a session", tmp_path)
+        sim.kill()  # the unit's cable is pulled: the pty vanishes
+        sim.wait(5)
+        wait_for(lambda: status(sock)["link"].get("connected") is False or
+                 status(sock)["link"].get("reconnects", 0) > 0, 20, "the daemon to notice", tmp_path)
+        assert daemon.poll() is None
+        sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty), "--flash", str(flash))
+        st = wait_for(lambda: _acked(sock), 120, "a push after the link came back", tmp_path)
+        assert st["unit"]["boot_count"] >= 2 and st["sessions"] >= 2
+        assert daemon.poll() is None
+    finally:
+        if daemon is not None:
+            stop(daemon)
+        stop(sim)
+
+
+def test_daemon_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
+    addr = str(tmp_path / "notify.sock")
+    rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx.bind(addr)
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(tmp_path / "unit.pty"))
+    daemon = None
+    got: list[str] = []
+
+    def drain() -> None:
+        rx.setblocking(False)
+        for _ in range(10_000):  # bounded: pings keep coming while the daemon runs
+            try:
+                got.extend(rx.recv(4096).decode().splitlines())
+            except BlockingIOError:
+                return
+
+    try:
+        wait_for(lambda: (tmp_path / "unit.pty").exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(tmp_path / "unit.pty")},
+                                    env={"NOTIFY_SOCKET": addr, "WATCHDOG_USEC": "400000"})
+        wait_for(lambda: (drain(), got.count("WATCHDOG=1") >= 3)[1], 30, "watchdog pings", tmp_path)
+        assert "READY=1" in got and got.index("READY=1") < got.index("WATCHDOG=1")
+        assert any(g.startswith("STATUS=") for g in got)
+        assert stop(daemon) == 0
+        drain()
+        assert "STOPPING=1" in got
+    finally:
+        rx.close()
+        if daemon is not None:
+            stop(daemon)
+        stop(sim)
