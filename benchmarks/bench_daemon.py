@@ -146,15 +146,18 @@ def _latency(engine: Engine, rate: float) -> dict[str, Any]:
     half = engine.detector.half
     return {**lat, "still_window_samples": engine.detector.cfg.window, "lookahead_samples": half,
             "lookahead_s": half / rate,
-            "session_rate_hz": None if engine.session is None else engine.session.rate_hz}
+            "session_rate_hz": None if engine.session is None else engine.session.rate_hz,
+            "engine_rate_hz": engine.rate_hz,
+            "hello_rate_hz": None if engine.last_hello is None else engine.last_hello.rate_hz}
 
 
 def bench_throughput(kind: str, rate: float, seconds: float, still_window_s: float | None) -> dict[str, Any]:
     """One run of ``seconds`` worth of samples at ``rate``: counts, samples/s, CPU and latency."""
     total = round(seconds * rate)
     overrides = {} if still_window_s is None else {"still.window_s": still_window_s}
+    unit_args = ["--duration", f"{seconds:g}"]
     with tempfile.TemporaryDirectory(prefix="gyrocal-bench-") as tmp, \
-            daemon_and_unit(kind, rate, Path(tmp), overrides, ["--duration", f"{seconds:g}"]) as (engine, unit):
+            daemon_and_unit(kind, rate, Path(tmp), overrides, unit_args) as (engine, unit):
         t0, c0 = time.monotonic(), time.process_time()
         next_check = [0.0]
 
@@ -266,7 +269,8 @@ def print_table(report: dict[str, Any]) -> None:
           f"{'samples/s':>11}{'no loss':>8}{'cpu':>6}")
     for r in report["throughput"]:
         lost = r["lost"]
-        n_lost = max(lost["missing"], lost["ring_lost"] + lost["decoder_lost_samples"]) + lost["unit_tx_dropped"]
+        n_lost = max(lost["missing"], lost["ring_lost"] + lost["decoder_lost_samples"])
+        n_lost += lost["unit_tx_dropped"]
         print(f"{r['link']:<7}{r['still_window_s']:>6g}{r['rate_hz']:>8g}{r['unit_sent']:>9}"
               f"{r['sent_before_daemon_listened']:>9}{r['received']:>9}{n_lost:>6}{r['samples_per_s']:>11,.1f}"
               f"{'yes' if r['no_sample_lost'] else 'NO':>8}{r['daemon_cpu_fraction']:>6.0%}")
@@ -290,12 +294,14 @@ def print_table(report: dict[str, Any]) -> None:
         print(f"   received {s['received']} samples (unit ~{s['unit_sent_approx']}), ring lost "
               f"{s['ring_lost']}, decoder lost {s['decoder_lost_samples']}; end state {s['state']}, "
               f"store versions {s['store_versions']}")
+        series = " ".join(f"{t:.0f}s:{kb}" for t, kb in s["rss_series"])
+        print(f"   VmRSS [kB] series: {series}")
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=20.0, help="seconds per throughput run (default 20)")
-    p.add_argument("--soak-s", type=float, default=60.0, help="memory soak [s]; 600 = the full 10 min; 0 = skip")
+    p.add_argument("--soak-s", type=float, default=60.0, help="memory soak [s]; 600 = 10 min; 0 = skip")
     p.add_argument("--rss-every", type=float, default=10.0, help="RSS sampling interval in the soak [s]")
     p.add_argument("--rate", type=float, default=2000.0, help="the unit's sample rate [Hz], at most 2000")
     p.add_argument("--small-still-s", type=float, default=0.02,

@@ -213,7 +213,7 @@ def bench_can_udp(rates: list[float], seconds: float) -> dict[str, Any]:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--samples", type=int, default=100_000, help="samples per run (default 100000)")
-    p.add_argument("--udp-rates", default="2000,4000,8000,16000", help="paced rates to try [samples/s]")
+    p.add_argument("--udp-rates", default="2000,4000,8000,16000,32000", help="paced rates to try [samples/s]")
     p.add_argument("--udp-seconds", type=float, default=3.0, help="seconds per udp_multicast rate")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args()

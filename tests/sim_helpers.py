@@ -24,6 +24,26 @@ def free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
+MULTICAST_GROUP = "239.74.163.2"
+
+
+def multicast_works(port: int) -> bool:
+    """True when python-can udp_multicast loops a datagram back on this host (it needs a route)."""
+    import can
+
+    try:
+        bus = can.Bus(interface="udp_multicast", channel=MULTICAST_GROUP, port=port)
+    except (can.CanError, OSError):
+        return False
+    try:
+        bus.send(can.Message(arbitration_id=0x7FF, data=b"", is_extended_id=False))
+        return bus.recv(1.0) is not None
+    except (can.CanError, OSError):
+        return False
+    finally:
+        bus.shutdown()
+
+
 def wait_for(cond: Callable[[], bool], timeout_s: float = 20.0, poll_s: float = 0.01) -> bool:
     """Poll ``cond`` until it holds or ``timeout_s`` passes (a generous bound, never asserted on)."""
     end = time.monotonic() + timeout_s

@@ -39,7 +39,9 @@ def _schedule(tmp: Path) -> Path:
 def start_sim(tmp: Path, *args: str, name: str = "unit") -> subprocess.Popen[str]:
     cmd = [*PY, "sim", "--rate", "500", "--seed", "3", "--schedule", str(_schedule(tmp)),
            "--status-json", str(tmp / f"{name}.json"), *args]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # stdout (the pty path) is not needed with --pty-link; stderr goes to a file so no pipe fills up
+    err = (tmp / f"{name}.stderr").open("w")
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True)
 
 
 def start_daemon(tmp: Path, link: dict[str, Any], env: dict[str, str] | None = None,
@@ -231,6 +233,13 @@ def test_daemon_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> 
         wait_for(lambda: (drain(), got.count("WATCHDOG=1") >= 3)[1], 30, "watchdog pings", tmp_path)
         assert "READY=1" in got and got.index("READY=1") < got.index("WATCHDOG=1")
         assert any(g.startswith("STATUS=") for g in got)
+        # SIGHUP reloads the config (RELOADING=1, then READY=1 again); SIGUSR1 recalibrates
+        daemon.send_signal(signal.SIGHUP)
+        wait_for(lambda: (drain(), "RELOADING=1" in got)[1], 10, "RELOADING=1", tmp_path)
+        wait_for(lambda: status(sock).get("sessions", 0) >= 1, 20, "a session", tmp_path)
+        daemon.send_signal(signal.SIGUSR1)
+        wait_for(lambda: status(sock).get("sessions", 0) >= 2, 10, "SIGUSR1 to start a session", tmp_path)
+        assert "configuration reloaded" in (tmp_path / "daemon.log").read_text()
         assert stop(daemon) == 0
         drain()
         assert "STOPPING=1" in got

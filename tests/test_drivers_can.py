@@ -18,7 +18,7 @@ from gyrocal.sim.schedule import tumble
 from gyrocal.sim.transports import CanTransport
 from gyrocal.sim.truth import TruthModel
 from gyrocal.sim.unit import VirtualUnit
-from tests.sim_helpers import SimProcess, free_udp_port, read_status, wait_for
+from tests.sim_helpers import SimProcess, free_udp_port, multicast_works, read_status, wait_for
 
 GROUP = "239.74.163.2"
 _REAL_BUS = can.Bus
@@ -42,20 +42,6 @@ class Sink:
 
     def of(self, cls: type) -> list:
         return [m for m in list(self.msgs) if isinstance(m, cls)]
-
-
-def _multicast_works(port: int) -> bool:
-    try:
-        a = can.Bus(interface="udp_multicast", channel=GROUP, port=port)
-    except (can.CanError, OSError):
-        return False
-    try:
-        a.send(can.Message(arbitration_id=0x7FF, data=b"", is_extended_id=False))
-        return a.recv(1.0) is not None  # multicast loopback: we hear ourselves
-    except (can.CanError, OSError):
-        return False
-    finally:
-        a.shutdown()
 
 
 def test_can_virtual_bus_in_one_process_delivers_every_sample_and_acks() -> None:
@@ -93,7 +79,7 @@ def test_can_virtual_bus_in_one_process_delivers_every_sample_and_acks() -> None
 
 def test_can_udp_multicast_across_processes_streams_and_acks(tmp_path: Path) -> None:
     port = free_udp_port()  # a distinct port per test run: parallel runs do not hear each other
-    if not _multicast_works(port):
+    if not multicast_works(port):
         pytest.skip("no IPv4 multicast route on this host (udp_multicast cannot loop back)")
     status = tmp_path / "sim.json"
     args = ("--link", "can", "--can-interface", "udp_multicast", "--can-channel", GROUP,
