@@ -25,7 +25,10 @@ measures the link alone at its limit; this one measures the whole daemon at the 
    = 0.1 s at the detector's rate), because a sample is only decided once the samples after it have
    arrived. The runs with ``still.window_s`` = ``--small-still-s`` (default 0.02 s) shrink that
    look-ahead so the rest (batching in the unit, the engine's 2 ms poll, processing) shows; the
-   look-ahead actually in effect (detector half-window / unit rate) is reported next to each figure.
+   look-ahead actually in effect (detector half-window in samples / unit rate) is reported next to
+   each figure, with the rate the session was sized for: the engine sizes the detector in samples
+   from the rate it assumes when the session starts (``session_rate_hz``), which may differ from the
+   unit's rate (``hello_rate_hz``), and then the look-ahead differs from half of ``still.window_s``.
 3. memory: a fresh Python process (this script with ``--soak-child``) runs the engine against the
    unit on a pty at ``--rate`` for ``--soak-s`` seconds (600 = the 10-minute soak) and reads its
    own VmRSS from /proc/self/status at the start (after the engine opened) and every ``--rss-every``

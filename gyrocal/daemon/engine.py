@@ -214,7 +214,7 @@ class Engine:
             self.session.on_message(msg, now)
 
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
-        log.warning("link %s %s", name, detail)
+        log.log(logging.INFO if name == "link_up" else logging.WARNING, "link %s %s", name, detail)
         if name == "link_up":
             # the unit may have kept running or rebooted: ask who it is (a new boot count starts a
             # new session) and re-read the set it holds
