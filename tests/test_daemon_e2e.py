@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -126,6 +127,19 @@ def _control_commands(sock: Path, tmp_path: Path) -> None:
     assert out.returncode == 0, out.stdout + out.stderr
     wait_for(lambda: (status(sock).get("last_push") or {}).get("version") == 1 and
              status(sock)["last_push"]["status"] == "acked", 20, "the rollback push", tmp_path)
+    # an operator's own set, from a file (here: the store's v1 with its x bias nudged)
+    rec = json.loads(next((tmp_path / "state").rglob("v000001.json")).read_text())
+    coeffs = rec["coefficients_dps"]
+    coeffs[0][0] += 1e-4
+    (tmp_path / "set.json").write_text(json.dumps({"terms": rec["terms"], "coefficients": coeffs}))
+    out = subprocess.run([*PY, "push", "--file", str(tmp_path / "set.json"), "--socket", str(sock)],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stdout + out.stderr
+    version = int(re.search(r"pushing v(\d+)", out.stdout + out.stderr).group(1))
+    assert version >= 2
+    wait_for(lambda: (status(sock).get("last_push") or {}).get("version") == version and
+             status(sock)["last_push"]["status"] == "acked", 20, "the pushed file", tmp_path)
+    wait_for(lambda: unit_status(tmp_path)["applied_version"] == version, 10, "the unit to apply it")
 
 
 def test_daemon_and_unit_over_a_pty_push_and_cut_drift_tenfold(tmp_path: Path) -> None:

@@ -87,7 +87,7 @@ def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float) -> dict[str
                 unit.stop()
     acked = push.get("status") == "acked"
     before_rms = before.get("drift_rms_compensated_dps") or after.get("drift_rms_raw_dps") or {}
-    after_rms = after.get("drift_rms_compensated_dps") or {} if acked else before_rms
+    after_rms = (after.get("drift_rms_compensated_dps") or {}) if acked else before_rms
     return {
         "pushed": bool(push), "acked": acked, "version": push.get("version"), "link": kind,
         "drift_rms_before": before_rms, "drift_rms_after": after_rms,
