@@ -44,8 +44,6 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "forgetting": ((int, float), 1.0, "write a forgetting factor in (0.9, 1]"),
         "step": ((int, float), 0.5, "write an NLMS/LMS step size in (0, 2)"),
         "convergence": ((dict,), {}, "write a mapping of convergence thresholds"),
-        "warm_start_inflation": ((int, float), 100.0,
-                                 "write how much the stored uncertainty widens at switch-on (>= 1)"),
     },
     "validation": {
         "holdout_every": ((int,), 5, "write an integer >= 2: every n-th still block is held out"),
@@ -186,8 +184,6 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
         _fail(name, "estimator.method", est["method"], "write rls, nlms or lms")
     if not 0.9 < est["forgetting"] <= 1.0:
         _fail(name, "estimator.forgetting", est["forgetting"], "write a factor in (0.9, 1]")
-    if est["warm_start_inflation"] < 1:
-        _fail(name, "estimator.warm_start_inflation", est["warm_start_inflation"], "write a number >= 1")
     if val["holdout_every"] < 2:
         _fail(name, "validation.holdout_every", val["holdout_every"], "write an integer >= 2")
     if not 0 <= val["min_improvement"] < 1:

@@ -31,6 +31,7 @@ import numpy as np
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.push import PushTransaction
+from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello
 from gyrocal.protocol.termsets import names_for, terms_id
@@ -154,7 +155,9 @@ class Session:
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         raw = out + self.applied.compensation(cols)
-        phi = self.spec.design(cols)
+        # learn on gravity as a unit vector (gx^2 + gy^2 + gz^2 = 1 exactly, so the structural null
+        # direction is exact); the unit applies its set on the measured accel, hence raw above
+        phi = block_terms(self.spec, cols)
         blocks, train = self.acc.feed(raw, out, phi, still)
         self.still_samples += int(still.sum())
         if train.any() and self.state is not State.PUSHING:
