@@ -103,3 +103,45 @@ def test_no_push_before_the_unit_has_visited_enough_orientations(tmp_path: Path)
     s = h.session
     assert s is not None and not s.last_push
     assert s.state is State.COLLECTING and "rank" in s.reason
+
+
+def test_switch_on_in_a_vehicle_at_one_pose_re_estimates_the_bias_and_keeps_the_rest(tmp_path: Path) -> None:
+    """Seed 000's case: after a full calibration, a switch-on at one pose still tracks the new bias."""
+    from gyrocal.sim.schedule import still
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    first = h.store.latest(4242)
+    h.unit.schedule = still((0.0, 0.0, 1.0))  # mounted in the vehicle, z up, for good
+    h.switch_on()
+    before = h.unit.status()["drift_rms_compensated_dps"]  # v1 applied to the new bias
+    h.run(60, until=_pushed)
+    s = h.session
+    assert s is not None and s.last_push.get("status") == "acked", s.reason
+    ident = s.learner.identifiable()
+    assert ident["rank"] < 9  # one pose determines only the combination seen there
+    after = h.unit.status()["drift_rms_compensated_dps"]
+    for a in "xyz":
+        assert after[a] * 5 <= before[a], (a, before[a], after[a])
+    # directions the pose did not excite keep the stored values (seen from the x pose, unchanged)
+    c1, c2 = np.asarray(first.coefficients_dps), np.asarray(h.store.latest(4242).coefficients_dps)
+    xpose = np.array([1, 1, 0, 0, 1, 0, 0, 0, 0, 0], dtype=float)
+    zpose = np.array([1, 0, 0, 1, 0, 0, 1, 0, 0, 0], dtype=float)
+    assert np.max(np.abs((c2 - c1) @ zpose)) > 1e-3  # the new bias, seen at z up
+    np.testing.assert_allclose((c2 - c1) @ xpose, (c2 - c1) @ zpose, atol=2e-4)  # bias only
+
+
+def test_monitoring_raises_a_drift_alarm_when_the_residual_grows(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    s = h.session
+    assert s is not None and s.state is State.MONITORING
+    h.run(15)
+    assert not s.alarm
+    assert h.unit.stream is not None
+    h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([0.0, 0.02, 0.0])  # the bias walks off
+    h.run(15)
+    assert s.alarm
+    assert s.status()["alarm"] is True

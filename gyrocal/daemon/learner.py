@@ -10,6 +10,11 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
 - **Rank needed.** With no stored calibration, nothing is pushed until the data determines every
   direction the model can determine at all (its structural rank: 9 of 10 for seed 000's terms,
   because gx^2 + gy^2 + gz^2 = 1). With a stored calibration, one determined direction suffices.
+- **Bias-only update.** Until this session's data reaches the structural rank, a warm-started
+  session changes only the constant term: the stored set plus this switch-on's bias, estimated as
+  the mean residual of the stored set. A least-squares update would spread the bias change over
+  every term that is 1 at the poses seen (1, gz, gz^2 at z up) and corrupt the others' stored
+  values; the bias is the quantity that changes from one switch-on to the next.
 """
 
 from __future__ import annotations
@@ -62,9 +67,27 @@ class Learner:
         if est["method"] in ("lms", "nlms"):
             kw["mu" if est["method"] == "nlms" else "alpha"] = est["step"]
         self.est = make_estimator(est["method"], self.names, **kw)
+        self.full_rank = structural_rank(tuple(self.names))
+        self.prior = np.asarray(prior.coefficients_dps, dtype=np.float64) if self.has_prior else None
+        self.const = self.names.index("1") if "1" in self.names else None
+        self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
+        self._sum_res2 = np.zeros(3)
+        self._n = 0
 
     def update_many(self, phi: np.ndarray, raw_dps: np.ndarray) -> None:
         self.est.update_many(phi, raw_dps)
+        if self.prior is not None:
+            res = raw_dps - phi @ self.prior.T
+            ok = np.all(np.isfinite(res), axis=1)
+            self._sum_res += res[ok].sum(axis=0)
+            self._sum_res2 += (res[ok] ** 2).sum(axis=0)
+            self._n += int(ok.sum())
+
+    @property
+    def bias_only(self) -> bool:
+        """True while a warm start lacks the excitation for a full update (see the module docstring)."""
+        return (self.prior is not None and self.const is not None and self._n > 0
+                and self.est.identifiability.rank < self.full_rank)
 
     @property
     def samples(self) -> int:
@@ -72,10 +95,20 @@ class Learner:
 
     @property
     def coefficients(self) -> np.ndarray:
+        if self.bias_only and self.prior is not None:
+            c = self.prior.copy()
+            c[:, self.const] += self._sum_res / self._n
+            return c
         return self.est.coefficients
 
     @property
     def uncertainty(self) -> np.ndarray:
+        if self.bias_only:
+            sig = np.full((3, len(self.names)), np.inf)  # held at the stored values, not learnt here
+            mean = self._sum_res / self._n
+            var = np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
+            sig[:, self.const] = np.sqrt(var / self._n)
+            return sig
         return self.est.uncertainty
 
     def identifiable(self) -> dict[str, Any]:

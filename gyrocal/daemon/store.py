@@ -60,8 +60,9 @@ class CalibrationRecord:
     """One calibration of one unit.
 
     coefficients_dps and uncertainty_dps are 3 rows (x, y, z) of P values, one per term, in deg/s per
-    unit of the term (deg/s per g, per degC, ...). An uncertainty of None means "not determined by the
-    data" (JSON has no Inf); such a coefficient must never be pushed. version 0 means "assign on add".
+    unit of the term (deg/s per g, per degC, ...). An uncertainty of None means "not determined by this
+    session's data" (JSON has no Inf): its value was held, never learnt (the stored set's value on a
+    warm start, else the prior zero; see daemon/learner.py). version 0 means "assign on add".
     """
 
     serial: int

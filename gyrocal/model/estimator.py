@@ -54,6 +54,14 @@ class InputGuard:
     max_accel_g: float = 20.0
 
 
+def _without_null(delta: np.ndarray, null: np.ndarray) -> np.ndarray:
+    """Coefficient changes (3, P) with their part along the undetermined directions (K, P) removed."""
+    if null.size == 0:
+        return delta
+    q, _ = np.linalg.qr(null.T)  # orthonormal basis of the null space, (P, K)
+    return delta - (delta @ q) @ q.T
+
+
 class Estimator:
     """Base of every method. Subclasses implement ``_step`` / ``_step_block`` (the W update).
 
@@ -309,13 +317,23 @@ class Estimator:
         e_rms = np.sqrt(sum(x[1] for x in err) / max(n_err, 1)) if err else np.full(3, np.inf)
         resid = self.residual_rms_dps
         ratio = float(np.max(e_rms / np.maximum(resid, 1e-12)))
-        rank = self.identifiability.rank
+        ident = self.identifiability
+        rank = ident.rank
         sig = self.uncertainty
         det = np.isfinite(sig[0])
-        max_sig = float(sig[:, det].max()) if det.any() else _INF
+        if det.any():
+            max_sig = float(sig[:, det].max())
+        else:
+            # no coefficient is determined on its own (e.g. one pose, with a prior holding the rest):
+            # judge the combinations the data did determine, through the fitted output's 1-sigma
+            max_sig = float(np.max(resid / np.sqrt(max(n, 1)))) if rank else _INF
         change = _INF
         if len(self._snaps) == 2:
-            change = float(np.abs(self._snaps[1][1] - self._snaps[0][1])[:, det].max()) if det.any() else _INF
+            delta = self._snaps[1][1] - self._snaps[0][1]
+            if det.any():
+                change = float(np.abs(delta)[:, det].max())
+            elif rank:
+                change = float(np.abs(_without_null(delta, ident.null_physical)).max())
         metrics = {"samples": n, "rank": rank, "error_ratio": ratio, "change_dps": change,
                    "max_sigma_dps": max_sig}
         checks = [
