@@ -222,21 +222,23 @@ class Session:
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
         }
         if not new2 <= need * old2:
-            self.reason = (
-                f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough on "
-                f"the current {np.sqrt(old2):.3g} deg/s; not pushing"
-            )
-            log.warning("unit %s: %s", self.hello.serial, self.reason)
+            why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
+                   f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
             self.last_validation["passed"] = False
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
-            self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
+            if self.validated_rms is not None:  # a re-check while monitoring a pushed set: routine
+                log.info("unit %s: %s", self.hello.serial, why)
+                self.state = State.MONITORING
+            else:
+                log.warning("unit %s: %s", self.hello.serial, why)
+                self.state, self.reason = State.COLLECTING, why
             return
         self.last_validation["passed"] = True
         self.validated_rms = rms_new
-        record = self._record(coeffs, now)
+        record = self._record(coeffs)
         self.start_push(record["version"], self.names, coeffs, now)
 
-    def _record(self, coeffs: np.ndarray, now: float) -> dict[str, Any]:
+    def _record(self, coeffs: np.ndarray) -> dict[str, Any]:
         from gyrocal.daemon.store import CalibrationRecord
 
         rec = CalibrationRecord(
