@@ -52,7 +52,9 @@ class Harness:
         return cls(cfg, unit, CalibrationStore(cfg.state_dir))
 
     def send(self, msg: Any) -> None:
-        self.outbox.extend(self.unit.handle(msg))
+        # replies follow the samples rendered so far on the wire: note the seq just before them
+        last_seq = self.unit.session_index - 1 if self.unit.session_index else None
+        self.outbox.extend((reply, last_seq) for reply in self.unit.handle(msg))
 
     def switch_on(self) -> None:
         hello = self.unit.power_on()
@@ -71,8 +73,8 @@ class Harness:
             if self.session is None or self.detector is None:
                 continue
             replies, self.outbox = self.outbox, []
-            for msg in replies:
-                self.session.on_message(msg, self.now)
+            for msg, last_seq in replies:
+                self.session.on_message(msg, self.now, last_seq)
             decided, still = self.detector.feed(block)
             self.session.feed(decided, still, self.now)
             self.session.tick(self.now)

@@ -84,6 +84,10 @@ class BlockAccumulator:
             i = j
         return done, train
 
+    def discard_partial(self) -> None:
+        """Drop the block being filled (its samples are already trained on or held out)."""
+        self._reset(self._phi.shape[0])
+
     def _close(self, done: list[Block], partial: bool) -> None:
         if self._n == 0:
             return

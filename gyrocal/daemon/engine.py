@@ -25,6 +25,7 @@ import queue
 import signal
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,6 +80,9 @@ class Engine:
         self._last_status_line = ""
         self._next_hello_request = 0.0
         self._next_publish = 0.0
+        self._popped_total = 0  # samples popped from the ring since start (the ring's own count)
+        self._seq_hist: deque[tuple[int, np.ndarray]] = deque(maxlen=8)
+        self._held: list[tuple[Any, ...]] = []  # unit messages waiting for their preceding samples
         # sample-to-weights latency [s]: a fixed-size reservoir of the newest values (O(1) memory)
         self._lat = np.full(1 << 14, np.nan)
         self._lat_i = 0
@@ -128,7 +132,8 @@ class Engine:
 
     # -- callbacks from other threads ---------------------------------------------------------
     def _on_control(self, msg: Any) -> None:
-        self.inbox.put(("msg", msg))
+        # runs on the reader thread in stream order: ring.pushed is how many samples came before msg
+        self.inbox.put(("msg", msg, self.ring.pushed))
 
     def _on_event(self, name: str, detail: str = "") -> None:
         self.inbox.put(("event", name, detail))
@@ -150,10 +155,12 @@ class Engine:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while not self._stop.is_set():
             now = time.monotonic()
-            self._drain_inbox(now)
             block = self.ring.pop(8192)
             if block.size:
+                self._seq_hist.append((self._popped_total, block["seq"].copy()))
+                self._popped_total += block.size
                 self._on_samples(block, now)
+            self._drain_inbox(now)
             if self.session is not None:
                 self.session.tick(now)
             elif now >= self._next_hello_request and self.ring.pushed:
@@ -171,7 +178,19 @@ class Engine:
             if block.size < 64:
                 time.sleep(0.002)
 
+    def _seq_at(self, index: int) -> int | None:
+        """The seq of the sample with this ring index (counted from the engine's start), if recent."""
+        for start, seq in reversed(self._seq_hist):
+            if start <= index < start + seq.size:
+                return int(seq[index - start])
+        return None
+
     def _drain_inbox(self, now: float) -> None:
+        """Handle what the other threads posted; a unit message waits until the samples that came
+        before it on the wire have been popped, so messages and samples are handled in stream order."""
+        held, self._held = self._held, []
+        for item in held:
+            self.inbox.put(item)
         while True:
             try:
                 item = self.inbox.get_nowait()
@@ -179,7 +198,13 @@ class Engine:
                 return
             kind = item[0]
             if kind == "msg":
-                self._on_message(item[1], now)
+                _, msg, before, *seen = item
+                first_seen = seen[0] if seen else now
+                if before > self._popped_total and now - first_seen < 0.5:
+                    self._held.append(("msg", msg, before, first_seen))  # its samples are still in flight
+                    continue
+                last_seq = self._seq_at(before - 1) if before > 0 else None
+                self._on_message(msg, now, last_seq)
             elif kind == "event":
                 self._on_link_event(item[1], item[2], now)
             elif kind == "cmd":
@@ -198,7 +223,8 @@ class Engine:
         except Exception as err:  # the link may be down; the reader thread reconnects
             log.debug("HELLO_REQUEST not sent: %s", err)
 
-    def _on_message(self, msg: Any, now: float) -> None:
+    def _on_message(self, msg: Any, now: float, last_seq: int | None = None) -> None:
+        """A message from the unit; ``last_seq`` is the seq of the sample just before it on the wire."""
         if isinstance(msg, Hello):
             s = self.session
             if s is not None and (s.hello.serial, s.hello.boot_count) == (msg.serial, msg.boot_count):
@@ -211,7 +237,7 @@ class Engine:
             self._start_session(msg, now)
             return
         if self.session is not None:
-            self.session.on_message(msg, now)
+            self.session.on_message(msg, now, last_seq)
 
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
         log.log(logging.INFO if name == "link_up" else logging.WARNING, "link %s %s", name, detail)
@@ -226,7 +252,7 @@ class Engine:
     def _start_session(self, hello: Hello, now: float) -> None:
         prior = self.store.latest(hello.serial, acked_only=True)
         learner = make_learner(self.cfg, prior)
-        rate = self.rate_hz or 1000.0
+        rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
         self.detector = self._new_detector(rate)
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version)

@@ -30,7 +30,7 @@ import numpy as np
 
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.learner import Learner
-from gyrocal.daemon.push import PushTransaction
+from gyrocal.daemon.push import PushPhase, PushTransaction
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello
@@ -111,6 +111,8 @@ class Session:
         self.monitor = BlockWindow(max(4, monitor_blocks))
         self.push: PushTransaction | None = None
         self.pending_version: int | None = None
+        self._pending: tuple[list[str], np.ndarray] = ([], np.zeros((3, 0)))
+        self._switch: tuple[AppliedSet, int | None] | None = None  # acked set, seq before the ack
         self.validated_rms: np.ndarray | None = None
         self.last_validation: dict[str, Any] = {}
         self.last_push: dict[str, Any] = {}
@@ -129,10 +131,18 @@ class Session:
         self._read_deadline = now + self.cfg.push["ack_timeout_s"]
         self.send(CoeffRead())
 
-    def on_message(self, msg: Any, now: float) -> None:
-        if self.push is not None and self.push.on_message(msg, now):
-            self._after_push(now)
-            return
+    def on_message(self, msg: Any, now: float, last_seq: int | None = None) -> None:
+        """A unit message; ``last_seq`` is the seq of the sample just before it on the wire."""
+        if self.push is not None:
+            waiting_ack = self.push.phase is PushPhase.WAIT_ACK
+            if self.push.on_message(msg, now):
+                if waiting_ack and self.push.phase is PushPhase.WAIT_READBACK:
+                    # acked: the unit compensates with the new set from the sample after the ack on
+                    names, coeffs = self._pending
+                    new = AppliedSet(self.push.write.version, terms_id(names), tuple(names), coeffs)
+                    self._switch = (new, last_seq)
+                self._after_push(now)
+                return
         if isinstance(msg, CoeffReport):
             applied = AppliedSet.from_report(msg)
             if self.applied is None:
@@ -154,7 +164,7 @@ class Session:
             "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
-        raw = out + self.applied.compensation(cols)
+        raw = out + self._compensation(samples["seq"], cols)
         # learn on gravity as a unit vector (gx^2 + gy^2 + gz^2 = 1 exactly, so the structural null
         # direction is exact); the unit applies its set on the measured accel, hence raw above
         phi = block_terms(self.spec, cols)
@@ -164,6 +174,23 @@ class Session:
             self.learner.update_many(phi[train], raw[train])
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
+
+    def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray]) -> np.ndarray:
+        """What the unit subtracted from each sample, (N, 3) [deg/s], switching sets at the ack."""
+        comp = self.applied.compensation(cols) if self.applied is not None else np.zeros((seq.size, 3))
+        if self._switch is None:
+            return comp
+        new, last_seq = self._switch
+        if last_seq is None:
+            after = np.ones(seq.size, dtype=bool)
+        else:
+            d = (seq.astype(np.int64) - last_seq) % (1 << 32)  # seq after last_seq, across the u32 wrap
+            after = (d > 0) & (d < (1 << 31))
+        if after.any():
+            comp[after] = new.compensation({k: v[after] for k, v in cols.items()})
+            self.applied, self._switch = new, None
+            self.acc.discard_partial()  # a block must not mix outputs of two sets
+        return comp
 
     # -- time ---------------------------------------------------------------------------------
     def tick(self, now: float) -> None:
@@ -281,9 +308,7 @@ class Session:
         except Exception as err:  # the store must never take the session down with it
             log.error("store: cannot record the push result of v%d: %s", version, err)
         if result.status == "acked":
-            names, coeffs = self._pending
-            self.applied = AppliedSet(version, terms_id(names), tuple(names), coeffs)
-            self.state = State.APPLIED
+            self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
             self.monitor.clear()
             self.holdout.clear()
@@ -294,7 +319,7 @@ class Session:
             self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             self.state = State.COLLECTING
-            self.applied = None  # read back what the unit holds rather than assume it
+            self.applied, self._switch = None, None  # read back what the unit holds, don't assume it
             self.request_read(now)
 
     def _check_alarm(self) -> None:
