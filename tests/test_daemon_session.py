@@ -145,3 +145,23 @@ def test_monitoring_raises_a_drift_alarm_when_the_residual_grows(tmp_path: Path)
     h.run(15)
     assert s.alarm
     assert s.status()["alarm"] is True
+
+
+def test_an_extended_model_with_temperature_terms_runs_and_pushes(tmp_path: Path) -> None:
+    """A temperature term (seed 004's T) beside seed 000's terms: learnt on line, pushed, applied.
+
+    (T^2 is not separable from T over one 8 degC warm-up; the rank rule refuses it, rightly.)
+    """
+    from gyrocal.protocol import termsets
+
+    terms = ["1", "gx", "gy", "gz", "gx^2", "gy^2", "gz^2", "gx*gy", "gy*gz", "gx*gz", "temp"]
+    termsets.register(terms)  # the unit's firmware must know a term set to apply it (else NAK)
+    h = Harness.make(tmp_path, **{"estimator.terms": terms})
+    h.switch_on()
+    h.run(120, until=_pushed)
+    s = h.session
+    assert s is not None and s.last_push.get("status") == "acked", s.reason
+    st = h.unit.status()
+    assert st["applied_terms"] == terms
+    for a in "xyz":
+        assert st["drift_rms_compensated_dps"][a] * 10 <= st["drift_rms_raw_dps"][a]

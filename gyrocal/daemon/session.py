@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import enum
 import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -121,6 +122,7 @@ class Session:
         self.samples = 0
         self.still_samples = 0
         self._t0_unit: float | None = None
+        self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)  # (unit time s, temp degC)
         self._next_check = now
         self._next_validation_at = 0
         self._read_deadline = now
@@ -162,6 +164,7 @@ class Session:
         cols = {
             "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
             "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
+            "dtemp": np.full(samples.size, self._temperature_rate(samples)),
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         raw = out + self._compensation(samples["seq"], cols)
@@ -174,6 +177,17 @@ class Session:
             self.learner.update_many(phi[train], raw[train])
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
+
+    def _temperature_rate(self, samples: np.ndarray) -> float:
+        """Causal dT/dt [degC/s]: the least-squares slope of 1 s temperature means over the last 20 s."""
+        t, temp = float(samples["t"][-1]), float(np.mean(samples["temp"]))
+        if not self._temp_hist or t - self._temp_hist[-1][0] >= 1.0:
+            self._temp_hist.append((t, temp))
+        pts = [(ti, yi) for ti, yi in self._temp_hist if t - ti <= 20.0]
+        if len(pts) < 3:
+            return 0.0
+        tt, yy = np.array(pts).T
+        return float(np.polyfit(tt - tt[0], yy, 1)[0])
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray]) -> np.ndarray:
         """What the unit subtracted from each sample, (N, 3) [deg/s], switching sets at the ack."""

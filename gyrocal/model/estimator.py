@@ -339,7 +339,8 @@ class Estimator:
         checks = [
             (n >= cfg.min_samples, f"only {n} of {cfg.min_samples} samples"),
             (rank >= cfg.min_rank,
-             f"rank {rank} < {cfg.min_rank}: the unit has not visited enough orientations"),
+             f"rank {rank} < {cfg.min_rank}: the data has not excited enough directions yet "
+             "(orientations, or temperatures for temperature terms)"),
             (ratio <= cfg.max_error_ratio,
              f"a-priori error {ratio:.2f}x the residual over the last {n_err} samples "
              f"(limit {cfg.max_error_ratio})"),
