@@ -188,20 +188,23 @@ class Engine:
     def _drain_inbox(self, now: float) -> None:
         """Handle what the other threads posted; a unit message waits until the samples that came
         before it on the wire have been popped, so messages and samples are handled in stream order."""
-        held, self._held = self._held, []
-        for item in held:
-            self.inbox.put(item)
+        pending, self._held = self._held, []
         while True:
-            try:
-                item = self.inbox.get_nowait()
-            except queue.Empty:
-                return
+            if pending:
+                item = pending.pop(0)  # held messages first, in their order
+            else:
+                try:
+                    item = self.inbox.get_nowait()
+                except queue.Empty:
+                    return
             kind = item[0]
             if kind == "msg":
                 _, msg, before, *seen = item
                 first_seen = seen[0] if seen else now
-                if before > self._popped_total and now - first_seen < 0.5:
-                    self._held.append(("msg", msg, before, first_seen))  # its samples are still in flight
+                # hold it while the samples before it are in flight (0.5 s at most), and hold every
+                # later message behind it, so the unit's messages keep their order
+                if self._held or (before > self._popped_total and now - first_seen < 0.5):
+                    self._held.append(("msg", msg, before, first_seen))
                     continue
                 last_seq = self._seq_at(before - 1) if before > 0 else None
                 self._on_message(msg, now, last_seq)
