@@ -38,7 +38,7 @@ from gyrocal.daemon.notify import Notifier
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session, State
 from gyrocal.daemon.stillness import StillConfig, StillDetector
-from gyrocal.daemon.store import CalibrationStore
+from gyrocal.daemon.store import CalibrationRecord, CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
 
@@ -341,8 +341,6 @@ class Engine:
                     return {"ok": False, "error": f"unit {serial} has no calibration v{target}"}
             s.start_push(rec.version, list(rec.terms), np.asarray(rec.coefficients_dps), now)
             return {"ok": True, "message": f"pushing v{rec.version}", "version": rec.version}
-        from gyrocal.daemon.store import CalibrationRecord
-
         terms = [str(t) for t in req["terms"]]
         coeffs = np.asarray(req["coefficients"], dtype=np.float64)
         if coeffs.shape != (3, len(terms)) or not np.all(np.isfinite(coeffs)):
@@ -350,7 +348,6 @@ class Engine:
         rec = self.store.add(CalibrationRecord(
             serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
             uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
-            created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             session={"boot_count": s.hello.boot_count}, push={"status": "pending"}))
         s.start_push(rec.version, terms, coeffs, now)
         return {"ok": True, "message": f"pushing v{rec.version}", "version": rec.version}

@@ -24,7 +24,6 @@ import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -32,6 +31,7 @@ import numpy as np
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.push import PushPhase, PushTransaction
+from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello
@@ -77,10 +77,6 @@ class AppliedSet:
 def finite_or_none(a: np.ndarray) -> list[Any]:
     """A nested list for JSON, with NaN and Inf (an undetermined coefficient) as None."""
     return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
-
-
-def utc_now() -> str:
-    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 class Session:
@@ -280,16 +276,14 @@ class Session:
         self.start_push(record["version"], self.names, coeffs, now)
 
     def _record(self, coeffs: np.ndarray) -> dict[str, Any]:
-        from gyrocal.daemon.store import CalibrationRecord
-
         rec = CalibrationRecord(
             serial=self.hello.serial, version=0, terms=list(self.names),
-            coefficients_dps=coeffs.tolist(), uncertainty_dps=finite_or_none(self.learner.uncertainty),
+            coefficients_dps=coeffs.tolist(),
+            uncertainty_dps=self.learner.uncertainty,  # the store writes undetermined (inf) as null
             identifiable=self.learner.identifiable(),
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
                    "warm_started_from": self.warm_started_from},
-            created_utc=utc_now(),
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
             push={"status": "pending"},
         )
