@@ -8,11 +8,8 @@ gyro axes. We take them as the unit vector a/|a| of the measured specific force 
   the model's (rank 9 for seed 000's terms), not an artefact of accelerometer noise;
 - the unit applying the pushed coefficients must use the same unit vector (INTERFACES.md).
 
-Still periods. The gravity model is static, so by default only samples at rest are used:
-a centred moving window of ``window_s`` gives the standard deviation of each gyro and accelerometer
-axis; a sample is still when both summed deviations are below ``factor`` times their 10th
-percentile over the log (a noise-floor estimate that needs no sensor-specific threshold), and
-the still run is at least one window long. ``--all-samples`` skips this.
+Still periods. The gravity model is static, so by default only samples at rest are used, as
+model/still.py detects them (the same detector as `gyrocal analyze`'s). ``--all-samples`` skips this.
 """
 
 from __future__ import annotations
@@ -22,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gyrocal.logformat import LogData
+from gyrocal.model.still import detect_still, sample_rate_hz
 from gyrocal.model.terms import TermSpec, derived_columns
 
 
@@ -62,32 +60,15 @@ def block_terms(spec: TermSpec, columns: dict[str, np.ndarray]) -> np.ndarray:
     return spec.design(cols)
 
 
-def _moving_std(x: np.ndarray, w: int) -> np.ndarray:
-    """Centred moving standard deviation over w samples, summed in quadrature over columns (N,)."""
-    n = len(x)
-    h = w // 2
-    c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x - x.mean(axis=0), axis=0)])
-    c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum((x - x.mean(axis=0)) ** 2, axis=0)])
-    lo = np.clip(np.arange(n) - h, 0, n)
-    hi = np.clip(np.arange(n) + h + 1, 0, n)
-    k = (hi - lo)[:, None]
-    var = (c2[hi] - c2[lo]) / k - ((c1[hi] - c1[lo]) / k) ** 2
-    return np.sqrt(np.maximum(var, 0.0).sum(axis=1))
-
-
-def still_mask(t: np.ndarray, gyro_dps: np.ndarray, accel_g: np.ndarray, window_s: float = 0.5,
-               factor: float = 3.0) -> np.ndarray:
-    """Boolean (N,) still flags from gyro (N, 3) [deg/s] and accel (N, 3) [g] (module docstring)."""
+def still_mask(t: np.ndarray, gyro_dps: np.ndarray, accel_g: np.ndarray, window_s: float = 0.4) -> np.ndarray:
+    """Boolean (N,) still flags of one session from gyro (N, 3) [deg/s] and accel (N, 3) [g]."""
     n = len(t)
     if n < 3:
         return np.ones(n, dtype=bool)
-    dt = float(np.median(np.diff(t))) or 0.01
-    w = max(3, int(round(window_s / dt)))
-    sg, sa = _moving_std(gyro_dps, w), _moving_std(accel_g, w)
-    still = (sg <= factor * np.percentile(sg, 10)) & (sa <= factor * np.percentile(sa, 10))
-    seg = segment_ids(still)
-    counts = np.bincount(seg[still]) if still.any() else np.zeros(0, int)
-    return still & (counts[np.where(still, seg, 0)] >= w if counts.size else still)
+    cols = {"t": np.asarray(t, dtype=np.float64)}
+    for k, a in enumerate("xyz"):
+        cols[f"w{a}"], cols[f"a{a}"] = gyro_dps[:, k], accel_g[:, k]
+    return detect_still(cols, sample_rate_hz(cols["t"], np.zeros(n)), window_s=window_s)
 
 
 def segment_ids(mask: np.ndarray) -> np.ndarray:
@@ -96,7 +77,7 @@ def segment_ids(mask: np.ndarray) -> np.ndarray:
     return np.maximum(np.cumsum(starts) - 1, 0)
 
 
-def prepare(log: LogData, spec: TermSpec, all_samples: bool = False, window_s: float = 0.5) -> FitData:
+def prepare(log: LogData, spec: TermSpec, all_samples: bool = False, window_s: float = 0.4) -> FitData:
     """Terms, gyro and time of the samples to fit: still ones by default, every one with all_samples."""
     cols = derived_columns(log.columns)
     g = gravity_direction(log.accel_g)
