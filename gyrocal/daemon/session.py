@@ -107,7 +107,6 @@ class Session:
         monitor_blocks = int(cfg.monitor["window_s"] / cfg.validation["block_s"])
         self.monitor = BlockWindow(max(4, monitor_blocks))
         self.push: PushTransaction | None = None
-        self.pending_version: int | None = None
         self._pending: tuple[list[str], np.ndarray] = ([], np.zeros((3, 0)))
         self._switch: tuple[AppliedSet, int | None] | None = None  # acked set, seq before the ack
         self.validated_rms: np.ndarray | None = None
@@ -295,7 +294,6 @@ class Session:
         """Push a set (a validated one, a rollback or a file); the unit applies it whole or not."""
         coeffs = np.asarray(coeffs, dtype=np.float64)
         write = CoeffWrite(version, terms_id(names), tuple(tuple(map(float, r)) for r in coeffs))
-        self.pending_version = version
         self._pending = (names, coeffs)
         self.state = State.PUSHING
         self.reason = f"pushing v{version}"
