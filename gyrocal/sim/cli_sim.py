@@ -36,7 +36,8 @@ MAX_RATE_HZ = 10_000.0
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--link", choices=("pty", "can"), default="pty", help="transport (default pty)")
+    p.add_argument("--link", choices=("pty", "can", "mavlink"), default="pty",
+                   help="transport (default pty); mavlink: a virtual PX4/ArduPilot (gyrocal/sim/autopilot_run.py)")
     p.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="samples per second (default 200)")
     p.add_argument("--seed", type=int, default=0, help="truth seed: same seed, same output (default 0)")
     p.add_argument("--serial", type=int, default=4242, help="unit serial number (default 4242)")
@@ -63,6 +64,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     f.add_argument("--garbage-rate", type=float, default=0.0, metavar="P",
                    help="probability per frame of random garbage bytes before it (pty only)")
     p.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+    from gyrocal.sim.autopilot_run import configure as configure_autopilot
+
+    configure_autopilot(p)
 
 
 def can_bus_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -118,6 +122,10 @@ def main(args: argparse.Namespace) -> int:
     if logging.getLogger().level > logging.INFO:  # a bus that failed to open warns again from __del__
         logging.getLogger("can").setLevel(logging.ERROR)
     _check(args)
+    if args.link == "mavlink":
+        from gyrocal.sim.autopilot_run import main as autopilot_main
+
+        return autopilot_main(args)
     schedule = load_schedule(args.schedule) if args.schedule else tumble()
     faults = Faults(nak_next=args.nak_next, drop_acks=args.drop_acks, never_hello=args.never_hello,
                     garbage_rate=args.garbage_rate)
