@@ -61,6 +61,8 @@ MSG_ID = {"HIGHRES_IMU": 105, "RAW_IMU": 27, "SCALED_IMU": 26, "SCALED_IMU2": 11
           "AUTOPILOT_VERSION": 148}
 CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE, CMD_REBOOT = 511, 512, 246
 TEMP_RATE_HZ = 10.0
+STREAM_STALL_S = 1.0
+"""IMU silence [s] with heartbeats present after which the stream is requested again."""
 
 
 class MavlinkLink(Link):
@@ -183,7 +185,10 @@ class MavlinkLink(Link):
         self._stream_asked_at: float | None = None
         self._temp_c: float | None = None
         self._t_last: float | None = None
+        self._imu_rx: float | None = None  # monotonic time of the last IMU message
+        self._asked_again: float = 0.0
         self._seq = 0
+        self._known_new = False
         self._range: list[float] | None = None
         self._boot = imu_mod.BootDetector(self.heartbeat_timeout_s)
 
@@ -195,6 +200,7 @@ class MavlinkLink(Link):
         keep_target, keep_profile = self.target_system, self.profile
         self._reset_boot()
         self.target_system, self.profile = keep_target, keep_profile
+        self._known_new = True
         self._extra["boots_seen"] += 1
 
     def _handle(self, m: Any, out: list[Any]) -> None:
@@ -251,11 +257,16 @@ class MavlinkLink(Link):
     def _ask_identity_and_stream(self, now: float) -> None:
         self._stream_asked_at = now
         self._command(CMD_REQUEST_MESSAGE, MSG_ID["AUTOPILOT_VERSION"])
-        self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID["HIGHRES_IMU"], 1e6 / self.rate_hz)
-        temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
-        self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID[temp_msg], 1e6 / TEMP_RATE_HZ)
+        self._ask_streams()
         self._reader = ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
                                     timeout_s=self.param_timeout_s, retries=self.param_retries)
+
+    def _ask_streams(self) -> None:
+        temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
+        if self._source in (None, "HIGHRES_IMU"):
+            self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID["HIGHRES_IMU"], 1e6 / self.rate_hz)
+        rate = self.rate_hz if self._source == temp_msg else TEMP_RATE_HZ
+        self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID[temp_msg], 1e6 / rate)
 
     def _fallback(self, now: float) -> None:
         temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
@@ -291,6 +302,7 @@ class MavlinkLink(Link):
             self._stream_asked_at = None
             self._ask_identity_and_stream(now)
         self._t_last = r.t_s
+        self._imu_rx = now
         if kind == temp_msg and r.temp_c is not None:
             self._temp_c = r.temp_c
         if self._source is None and kind == "HIGHRES_IMU":
@@ -328,6 +340,12 @@ class MavlinkLink(Link):
                 self._hello is not None and self._push is not None:
             self._push.abort("heartbeat lost")
             self._finish_push(out)
+        if (self._imu_rx is not None and now - self._imu_rx > STREAM_STALL_S and now - self._asked_again > 1.0
+                and self._boot.last_hb is not None and now - self._boot.last_hb < self.heartbeat_timeout_s):
+            # heartbeats but no IMU stream: a rebooted autopilot forgets SET_MESSAGE_INTERVAL. Asking
+            # again is harmless, and the resumed stream's time stamps show whether it was a new boot.
+            self._asked_again = now
+            self._ask_streams()
         if (self._source is None and self._stream_asked_at is not None
                 and now - self._stream_asked_at > self.highres_wait_s and self.profile is not None):
             self._fallback(now)
@@ -367,7 +385,7 @@ class MavlinkLink(Link):
         self.serial = imu_mod.derive_serial(int(v.uid), list(getattr(v, "uid2", []) or []), self.instance,
                                             self.target_system or 0)
         boot_wall = time.time() - float(self._t_last or 0.0)
-        boots = self.state.note_boot(self.serial, boot_wall)
+        boots = self.state.note_boot(self.serial, boot_wall, known_new=self._known_new)
         self._hello = Hello(self.serial, imu_mod.fw_text(v.flight_sw_version), boots, int(round(self.rate_hz)))
         log.info("mavlink %s: %s unit %d (uid %x, IMU %d), boot %d, reboot needed for a push: %s", self.url,
                  self.profile.name, self.serial, int(v.uid), self.instance, boots, self.reboot_required)  # type: ignore[union-attr]
@@ -395,7 +413,7 @@ class MavlinkLink(Link):
         crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
         why, reason = self._refuse(msg)
         if why:
-            log.error("mavlink link: push of v%d refused: %s", msg.version, why)
+            log.warning("mavlink link: push of v%d refused: %s", msg.version, why)
             out.append(CoeffNak(msg.version, crc, int(reason)))
             return
         lo, hi = self._temp_bounds()

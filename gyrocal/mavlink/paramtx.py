@@ -116,8 +116,8 @@ class OpRunner:
         if self._tries >= self.retries:
             op = self._ops[0]
             what = "read" if op.value is None else "write"
-            self.error = (f"{op.name}: no PARAM_VALUE after {self._tries} {what} request(s); is the parameter "
-                          f"present on this firmware?")
+            self.error = (f"{op.name}: no PARAM_VALUE after {self._tries} {what} request(s) (the autopilot "
+                          "went silent, or this firmware lacks the parameter)")
             return
         self.resends += 1
         log.info("no PARAM_VALUE for %s within %.1f s; asking again", self._ops[0].name, self.timeout_s)

@@ -41,11 +41,16 @@ class LinkState:
     def unit(self, serial: int) -> dict[str, Any]:
         return self.units.setdefault(str(serial), {})
 
-    def note_boot(self, serial: int, boot_wall: float, tolerance_s: float = 5.0) -> int:
-        """The boot count for a boot at ``boot_wall`` [s since epoch]; +1 when it is a new boot."""
+    def note_boot(self, serial: int, boot_wall: float, *, known_new: bool = False, tolerance_s: float = 5.0) -> int:
+        """The boot count for a boot at ``boot_wall`` [s since epoch]; +1 when it is a new boot.
+
+        ``known_new``: the link saw the reboot itself (time went back, heartbeat returned). Otherwise
+        (the first contact after the link started) a boot more than ``tolerance_s`` away from the
+        last one is new: the two clocks drift apart by ~50 ppm, seconds over days of uptime.
+        """
         u = self.unit(serial)
         last = u.get("boot_wall")
-        if last is None or abs(float(last) - boot_wall) > tolerance_s:
+        if known_new or last is None or abs(float(last) - boot_wall) > tolerance_s:
             u["boot_count"] = int(u.get("boot_count", 0)) + 1
         u["boot_wall"] = boot_wall
         self.save()

@@ -40,8 +40,8 @@ RAD = math.pi / 180.0
 
 @dataclass
 class AutopilotFaults:
-    """Injected faults: drop the next N PARAM_VALUE answers to PARAM_SET; clamp a parameter on write
-    (answer another value); reboot after the N-th PARAM_SET (0 = never)."""
+    """Injected faults: drop the next N PARAM_VALUE answers to PARAM_SET; refuse writes of one parameter
+    (the echo carries the value kept); reboot after the N-th PARAM_SET (0 = never)."""
 
     drop_param_values: int = 0
     reject_param: str = ""
@@ -85,7 +85,7 @@ class VirtualAutopilot:
     def __init__(
         self, kind: str, rate_hz: float = 250.0, seed: int = 0, *, truth: TruthModel | None = None,
         thermal: Thermal | None = None, faults: AutopilotFaults | None = None, sysid: int = 1,
-        noise_dps: float | None = None,
+        noise_dps: float = 0.05,
     ) -> None:
         if kind not in ("px4", "ardupilot"):
             raise ValueError(f"autopilot {kind!r}: px4 or ardupilot")
@@ -93,7 +93,8 @@ class VirtualAutopilot:
         self.profile = Px4(0) if kind == "px4" else ArduPilot(0)
         self.truth = truth or TruthModel()
         self.thermal = thermal or Thermal(ambient_c=20.0, rise_c=30.0, tau_s=120.0)
-        self.noise_dps = self.truth.noise_dps if noise_dps is None else noise_dps
+        self.noise_dps = noise_dps
+        """White gyro noise at the stream rate [deg/s]: a MEMS gyro after the autopilot's low-pass filter."""
         self.q_true = default_thermal_dps(seed)
         self.faults = faults or AutopilotFaults()
         self.mav = pymav.codec(sysid, 1)
@@ -268,7 +269,7 @@ class VirtualAutopilot:
         ptype = self.ptypes[name]
         value = decode_param(float(msg.param_value), ptype, self.profile.bytewise)
         if name == self.faults.reject_param:
-            value = f32(max(-1e-4, min(1e-4, value)) if value else 1.0)  # a range the value violates
+            value = self.params[name]  # refused: the echo carries the value it keeps
         self.params[name] = f32(value) if ptype == REAL32 else float(int(value))
         if self.kind == "px4" and self.boot.tc_running:
             self._px4_poll(t_s, self.temp_c(t_s), force=True)  # parameter_update -> reload

@@ -188,7 +188,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="warm-up time constant 20 -> 50 degC [s] (default 120)")
     g.add_argument("--drop-param-values", type=int, default=0, metavar="N",
                    help="fault: drop the PARAM_VALUE echo of the next N PARAM_SETs")
-    g.add_argument("--reject-param", default="", metavar="NAME", help="fault: clamp writes of NAME (echo differs)")
+    g.add_argument("--reject-param", default="", metavar="NAME", help="fault: refuse writes of NAME (echo differs)")
     g.add_argument("--reboot-after-sets", type=int, default=0, metavar="N",
                    help="fault: reboot after the N-th PARAM_SET of a boot")
 
