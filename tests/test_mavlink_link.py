@@ -54,16 +54,30 @@ class Collector:
 def open_link(url: str, tmp_path: Path, **kw: Any) -> tuple[MavlinkLink, Collector, RingBuffer]:
     col = Collector()
     ring = RingBuffer(1 << 16)
-    link = MavlinkLink(url, ring, col.control, col.event, state_file=str(tmp_path / "mav.json"),
-                       param_timeout_s=0.3, **kw)
+    link = MavlinkLink(
+        url, ring, col.control, col.event, state_file=str(tmp_path / "mav.json"), param_timeout_s=0.3, **kw
+    )
     link.start()
     return link, col, ring
 
 
 def sim(kind: str, tmp_path: Path, *extra: str) -> SimProcess:
-    return SimProcess("--link", "mavlink", "--autopilot", kind, "--rate", "250", "--warmup-tau", "30",
-                      "--status-json", str(tmp_path / "ap.json"), "--flash", str(tmp_path / "ap-flash.json"),
-                      *extra, tmp_path=tmp_path)
+    return SimProcess(
+        "--link",
+        "mavlink",
+        "--autopilot",
+        kind,
+        "--rate",
+        "250",
+        "--warmup-tau",
+        "30",
+        "--status-json",
+        str(tmp_path / "ap.json"),
+        "--flash",
+        str(tmp_path / "ap-flash.json"),
+        *extra,
+        tmp_path=tmp_path,
+    )
 
 
 def param_becomes(tmp_path: Path, name: str, value: float) -> bool:

@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamSet, Phase  # noqa: E402
+from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamSet  # noqa: E402
 from gyrocal.mavlink.profiles import ArduPilot, Px4, decode_param, encode_param  # noqa: E402
 from gyrocal.protocol.messages import NakReason  # noqa: E402
 
@@ -49,8 +49,12 @@ class Server:
             elif not isinstance(req, ParamRead):
                 continue
             name = req.name
-            push.on_value(name, encode_param(self.p[name], self.types[name], self.profile.bytewise),
-                          self.types[name], 0.0)
+            push.on_value(
+                name,
+                encode_param(self.p[name], self.types[name], self.profile.bytewise),
+                self.types[name],
+                0.0,
+            )
 
     def _check_atomic(self, push) -> None:
         """With compensation enabled, the coefficients must be all old or all new."""
@@ -142,8 +146,16 @@ def test_an_unknown_parameter_fails_with_a_clear_error() -> None:
         while srv.inbox:
             req = srv.inbox.pop(0)
             if req.name in srv.p:
-                reader.on_value(req.name, encode_param(srv.p[req.name], srv.types[req.name], False),
-                                srv.types[req.name], t)
+                reader.on_value(
+                    req.name,
+                    encode_param(srv.p[req.name], srv.types[req.name], False),
+                    srv.types[req.name],
+                    t,
+                )
         t += 0.6
         reader.tick(t)
-    assert reader.error is not None and "INS_TCAL1_GYR3_Z" in reader.error and "lacks the parameter" in reader.error
+    assert (
+        reader.error is not None
+        and "INS_TCAL1_GYR3_Z" in reader.error
+        and "lacks the parameter" in reader.error
+    )

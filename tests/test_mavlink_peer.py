@@ -110,9 +110,13 @@ class Peer:
                 lo, hi = self.p("INS_TCAL1_TMIN"), self.p("INS_TCAL1_TMAX")
 
                 def poly(x: float) -> np.ndarray:
-                    return np.array([sum(self.p(f"INS_TCAL1_GYR{k}_{a}") * 1e-6 * x**k for k in (1, 2, 3))
-                                     for a in "XYZ"])
-                out = poly(min(max(temp, lo), hi) - 35.0) - poly(min(max(self.p("INS_GYR1_CALTEMP"), lo), hi) - 35.0)
+                    return np.array(
+                        [sum(self.p(f"INS_TCAL1_GYR{k}_{a}") * 1e-6 * x**k for k in (1, 2, 3)) for a in "XYZ"]
+                    )
+
+                out = poly(min(max(temp, lo), hi) - 35.0) - poly(
+                    min(max(self.p("INS_GYR1_CALTEMP"), lo), hi) - 35.0
+                )
             out = out + np.array([self.p(f"INS_GYROFFS_{a}") for a in "XYZ"])
         return out / RAD
 
@@ -128,21 +132,41 @@ class Peer:
             self.temp_c = 20.0 + 30.0 * t / 20.0 if t < 20 else 50.0
             if t >= next_hb:
                 next_hb += 1.0
-                self.send(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 4, 3),
-                          self.gcs)
+                self.send(
+                    mav.MAVLink_heartbeat_message(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 4, 3),
+                    self.gcs,
+                )
                 self.send(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, autopilot, 0, 0, 3, 3))
             if self.stream_hz and t >= next_imu:
                 next_imu = t + 1.0 / self.stream_hz
                 raw = np.array([0.1, -0.2, 0.05]) + Q @ self.temp_c ** np.arange(4)  # deg/s
                 g = (raw - self.subtracted_dps(self.temp_c)) * RAD
                 if self.flavour == "px4":
-                    self.send(mav.MAVLink_highres_imu_message(int(t * 1e6), 0, 0, -9.81, *g, 0, 0, 0, 0, 0, 0,
-                                                              0.0, 0x3F, 0))
-                    self.send(mav.MAVLink_scaled_imu_message(int(t * 1e3), 0, 0, -1000, 0, 0, 0, 0, 0, 0,
-                                                             int(self.temp_c * 100)))
+                    self.send(
+                        mav.MAVLink_highres_imu_message(
+                            int(t * 1e6), 0, 0, -9.81, *g, 0, 0, 0, 0, 0, 0, 0.0, 0x3F, 0
+                        )
+                    )
+                    self.send(
+                        mav.MAVLink_scaled_imu_message(
+                            int(t * 1e3), 0, 0, -1000, 0, 0, 0, 0, 0, 0, int(self.temp_c * 100)
+                        )
+                    )
                 else:
-                    self.send(mav.MAVLink_raw_imu_message(int(t * 1e6), 0, 0, -1000, *(int(x * 1000) for x in g),
-                                                          0, 0, 0, 0, int(self.temp_c * 100)))
+                    self.send(
+                        mav.MAVLink_raw_imu_message(
+                            int(t * 1e6),
+                            0,
+                            0,
+                            -1000,
+                            *(int(x * 1000) for x in g),
+                            0,
+                            0,
+                            0,
+                            0,
+                            int(self.temp_c * 100),
+                        )
+                    )
             try:
                 data, addr = self.sock.recvfrom(4096)
             except OSError:
@@ -162,8 +186,22 @@ class Peer:
                 elif int(msg.param1) not in wanted:
                     result = mav.MAV_RESULT_UNSUPPORTED
             elif msg.command == mav.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == 148:
-                self.send(mav.MAVLink_autopilot_version_message(0, (1 << 24) | (2 << 16) | (3 << 8), 0, 0, 0,
-                                                                [0] * 8, [0] * 8, [0] * 8, 0, 0, 0xABCDEF, [7] * 18))
+                self.send(
+                    mav.MAVLink_autopilot_version_message(
+                        0,
+                        (1 << 24) | (2 << 16) | (3 << 8),
+                        0,
+                        0,
+                        0,
+                        [0] * 8,
+                        [0] * 8,
+                        [0] * 8,
+                        0,
+                        0,
+                        0xABCDEF,
+                        [7] * 18,
+                    )
+                )
             self.send(mav.MAVLink_command_ack_message(msg.command, result))
         elif kind in ("PARAM_SET", "PARAM_REQUEST_READ"):
             name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode()
@@ -171,8 +209,15 @@ class Peer:
                 return
             if kind == "PARAM_SET":
                 self.params[name] = (self.unwire(name, msg.param_value), self.params[name][1])
-            self.send(mav.MAVLink_param_value_message(name.encode(), self.wire(name), self.params[name][1],
-                                                      len(self.params), list(self.params).index(name)))
+            self.send(
+                mav.MAVLink_param_value_message(
+                    name.encode(),
+                    self.wire(name),
+                    self.params[name][1],
+                    len(self.params),
+                    list(self.params).index(name),
+                )
+            )
 
 
 @pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
@@ -180,8 +225,14 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(flavour:
     port = free_udp_port()
     ctl: list[object] = []
     ring = RingBuffer(1 << 15)
-    link = MavlinkLink(f"udpin:127.0.0.1:{port}", ring, ctl.append, state_file=str(tmp_path / "s.json"),
-                       rate_hz=100, param_timeout_s=0.3)
+    link = MavlinkLink(
+        f"udpin:127.0.0.1:{port}",
+        ring,
+        ctl.append,
+        state_file=str(tmp_path / "s.json"),
+        rate_hz=100,
+        param_timeout_s=0.3,
+    )
     peer = Peer(flavour, port)
     peer.thread.start()
     link.start()
@@ -194,14 +245,20 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(flavour:
         assert wait_for(lambda: any(isinstance(m, CoeffAck | CoeffNak) for m in ctl), 15)
         assert [m for m in ctl if isinstance(m, CoeffAck | CoeffNak)][0].__class__ is CoeffAck, ctl
         # the peer now subtracts Q (inside the range it saw) by its own reading of the parameters
-        lo, hi = peer.p("TC_G0_TMIN" if flavour == "px4" else "INS_TCAL1_TMIN"), \
-            peer.p("TC_G0_TMAX" if flavour == "px4" else "INS_TCAL1_TMAX")
+        lo, hi = (
+            peer.p("TC_G0_TMIN" if flavour == "px4" else "INS_TCAL1_TMIN"),
+            peer.p("TC_G0_TMAX" if flavour == "px4" else "INS_TCAL1_TMAX"),
+        )
         assert lo <= 25.0 and hi >= 35.0  # the range the link saw (from its Hello on)
         if flavour == "px4":
             assert peer.p("TC_G0_ID") == 33554433  # survived the bytewise encoding
         for temp in np.linspace(lo, hi, 5):
             want = Q @ temp ** np.arange(4)
-            assert np.allclose(peer.subtracted_dps(temp), want, atol=1e-5), (temp, peer.subtracted_dps(temp), want)
+            assert np.allclose(peer.subtracted_dps(temp), want, atol=1e-5), (
+                temp,
+                peer.subtracted_dps(temp),
+                want,
+            )
         link.send(CoeffRead())
         assert wait_for(lambda: any(isinstance(m, CoeffReport) for m in ctl), 10)
         rep = [m for m in ctl if isinstance(m, CoeffReport)][-1]

@@ -25,8 +25,15 @@ def px4_output_rad(p: dict[str, float], raw_rad: np.ndarray, temp: float) -> np.
     if p["TC_G_ENABLE"] == 1 and p["TC_G0_ID"] == p["CAL_GYRO0_ID"]:
         t = min(max(temp, p["TC_G0_TMIN"]), p["TC_G0_TMAX"])
         d = t - p["TC_G0_TREF"]
-        thermal = np.array([p[f"TC_G0_X0_{i}"] + p[f"TC_G0_X1_{i}"] * d + p[f"TC_G0_X2_{i}"] * d * d
-                            + p[f"TC_G0_X3_{i}"] * d**3 for i in range(3)])
+        thermal = np.array(
+            [
+                p[f"TC_G0_X0_{i}"]
+                + p[f"TC_G0_X1_{i}"] * d
+                + p[f"TC_G0_X2_{i}"] * d * d
+                + p[f"TC_G0_X3_{i}"] * d**3
+                for i in range(3)
+            ]
+        )
     return raw_rad - thermal - np.array([p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"])
 
 
@@ -58,7 +65,12 @@ def test_ardupilot_parameters_subtract_exactly_our_polynomial(caltemp: float) ->
 
 def test_px4_parameters_subtract_exactly_our_polynomial_with_its_cal_offset() -> None:
     prof = Px4(0)
-    ctx = {"CAL_GYRO0_ID": 2490378.0, "CAL_GYRO0_XOFF": 0.001, "CAL_GYRO0_YOFF": -0.003, "CAL_GYRO0_ZOFF": 0.0}
+    ctx = {
+        "CAL_GYRO0_ID": 2490378.0,
+        "CAL_GYRO0_XOFF": 0.001,
+        "CAL_GYRO0_YOFF": -0.003,
+        "CAL_GYRO0_ZOFF": 0.0,
+    }
     p = {**ctx, **prof.to_params(Q, ctx, 20.0, 50.0), "TC_G_ENABLE": 1.0}
     assert p["TC_G0_ID"] == 2490378.0 and p["TC_G0_TMIN"] == 20.0 and p["TC_G0_TMAX"] == 50.0
     raw = np.array([0.3, -0.2, 0.1]) * RAD
@@ -69,8 +81,13 @@ def test_px4_parameters_subtract_exactly_our_polynomial_with_its_cal_offset() ->
 
 @pytest.mark.parametrize("prof", [Px4(0), ArduPilot(0)], ids=["px4", "ardupilot"])
 def test_outside_the_range_the_autopilot_clamps_and_clamp_adjust_says_by_how_much(prof) -> None:
-    ctx = {"CAL_GYRO0_ID": 7.0, "INS_GYR1_CALTEMP": 30.0, "CAL_GYRO0_XOFF": 1e-3, "CAL_GYRO0_YOFF": 0.0,
-           "CAL_GYRO0_ZOFF": -2e-3}
+    ctx = {
+        "CAL_GYRO0_ID": 7.0,
+        "INS_GYR1_CALTEMP": 30.0,
+        "CAL_GYRO0_XOFF": 1e-3,
+        "CAL_GYRO0_YOFF": 0.0,
+        "CAL_GYRO0_ZOFF": -2e-3,
+    }
     p = {**ctx, **prof.to_params(Q, ctx, 25.0, 45.0), prof.enable.name: 1.0}
     raw = np.zeros(3)
     ref = px4_output_rad if prof.name == "px4" else ardupilot_output_rad
@@ -83,7 +100,11 @@ def test_outside_the_range_the_autopilot_clamps_and_clamp_adjust_says_by_how_muc
 
 def test_disabled_compensation_reports_only_the_plain_offset() -> None:
     prof = ArduPilot(0)
-    p = {**prof.to_params(Q, {"INS_GYR1_CALTEMP": 30.0}, 20, 50), "INS_TCAL1_ENABLE": 0.0, "INS_GYR1_CALTEMP": 30.0}
+    p = {
+        **prof.to_params(Q, {"INS_GYR1_CALTEMP": 30.0}, 20, 50),
+        "INS_TCAL1_ENABLE": 0.0,
+        "INS_GYR1_CALTEMP": 30.0,
+    }
     q = prof.applied(p)
     assert np.all(q[:, 1:] == 0)
     assert np.allclose(q[:, 0], [p[f"INS_GYROFFS_{a}"] / RAD for a in "XYZ"])

@@ -51,14 +51,22 @@ def decode(msg: object) -> ImuReading | None:
     kind = msg.get_type()  # type: ignore[attr-defined]
     m = msg
     if kind == "HIGHRES_IMU":
-        return ImuReading(m.time_usec * 1e-6, (m.xgyro * DEG_PER_RAD, m.ygyro * DEG_PER_RAD, m.zgyro * DEG_PER_RAD),
-                          (m.xacc / G0, m.yacc / G0, m.zacc / G0), None)
+        return ImuReading(
+            m.time_usec * 1e-6,
+            (m.xgyro * DEG_PER_RAD, m.ygyro * DEG_PER_RAD, m.zgyro * DEG_PER_RAD),
+            (m.xacc / G0, m.yacc / G0, m.zacc / G0),
+            None,
+        )
     if kind == "RAW_IMU" or kind in SCALED_BY_INSTANCE:
         t = m.time_usec * 1e-6 if kind == "RAW_IMU" else m.time_boot_ms * 1e-3
         k = 1e-3 * DEG_PER_RAD
         temp = getattr(m, "temperature", 0)
-        return ImuReading(t, (m.xgyro * k, m.ygyro * k, m.zgyro * k),
-                          (m.xacc * 1e-3, m.yacc * 1e-3, m.zacc * 1e-3), temp * 0.01 if temp else None)
+        return ImuReading(
+            t,
+            (m.xgyro * k, m.ygyro * k, m.zgyro * k),
+            (m.xacc * 1e-3, m.yacc * 1e-3, m.zacc * 1e-3),
+            temp * 0.01 if temp else None,
+        )
     return None
 
 
@@ -82,7 +90,7 @@ def derive_serial(uid: int, uid2: bytes | list[int] | None, instance: int, sysid
 
 
 def fw_text(flight_sw_version: int) -> str:
-    """AUTOPILOT_VERSION.flight_sw_version (major<<24 | minor<<16 | patch<<8 | type) -> 'major.minor.patch'."""
+    """AUTOPILOT_VERSION.flight_sw_version (major<<24|minor<<16|patch<<8|type) -> 'major.minor.patch'."""
     v = int(flight_sw_version)
     return f"{(v >> 24) & 0xFF}.{(v >> 16) & 0xFF}.{(v >> 8) & 0xFF}"
 

@@ -57,8 +57,14 @@ MAV_COMP_ID_AUTOPILOT1 = 1
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_AUTOPILOT_INVALID = 8
 MAV_MODE_FLAG_SAFETY_ARMED = 128
-MSG_ID = {"HIGHRES_IMU": 105, "RAW_IMU": 27, "SCALED_IMU": 26, "SCALED_IMU2": 116, "SCALED_IMU3": 129,
-          "AUTOPILOT_VERSION": 148}
+MSG_ID = {
+    "HIGHRES_IMU": 105,
+    "RAW_IMU": 27,
+    "SCALED_IMU": 26,
+    "SCALED_IMU2": 116,
+    "SCALED_IMU3": 129,
+    "AUTOPILOT_VERSION": 148,
+}
 CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE, CMD_REBOOT = 511, 512, 246
 TEMP_RATE_HZ = 10.0
 STREAM_STALL_S = 1.0
@@ -76,11 +82,25 @@ class MavlinkLink(Link):
     kind = "mavlink"
 
     def __init__(
-        self, url: str, ring: RingBuffer, on_control: ControlCallback, on_event: EventCallback | None = None,
-        *, baudrate: int = 921600, autopilot: str | None = None, instance: int = 0, rate_hz: float = 250.0,
-        state_file: str | None = None, source_system: int = 255, heartbeat_timeout_s: float = 3.0,
-        param_timeout_s: float = 0.5, param_retries: int = 4, highres_wait_s: float = 2.0,
-        tmin_c: float | None = None, tmax_c: float | None = None, **link_kwargs: Any,
+        self,
+        url: str,
+        ring: RingBuffer,
+        on_control: ControlCallback,
+        on_event: EventCallback | None = None,
+        *,
+        baudrate: int = 921600,
+        autopilot: str | None = None,
+        instance: int = 0,
+        rate_hz: float = 250.0,
+        state_file: str | None = None,
+        source_system: int = 255,
+        heartbeat_timeout_s: float = 3.0,
+        param_timeout_s: float = 0.5,
+        param_retries: int = 4,
+        highres_wait_s: float = 2.0,
+        tmin_c: float | None = None,
+        tmax_c: float | None = None,
+        **link_kwargs: Any,
     ) -> None:
         super().__init__(ring, on_control, on_event, **link_kwargs)
         if autopilot is not None and autopilot not in PROFILES:
@@ -122,12 +142,19 @@ class MavlinkLink(Link):
     def _open(self) -> None:
         mavutil = pymav.mavutil()
         try:
-            conn = mavutil.mavlink_connection(self.url, baud=self.baudrate, source_system=self.source_system,
-                                              source_component=MAV_COMP_ID_ONBOARD_COMPUTER, autoreconnect=False,
-                                              dialect="ardupilotmega")
+            conn = mavutil.mavlink_connection(
+                self.url,
+                baud=self.baudrate,
+                source_system=self.source_system,
+                source_component=MAV_COMP_ID_ONBOARD_COMPUTER,
+                autoreconnect=False,
+                dialect="ardupilotmega",
+            )
         except Exception as err:  # pymavlink raises serial, socket and plain errors alike
-            raise LinkError(f"mavlink connection {self.url!r} cannot be opened ({err}); check the device "
-                            "path and baud rate, or the udpin:/udpout:/tcp: address") from err
+            raise LinkError(
+                f"mavlink connection {self.url!r} cannot be opened ({err}); check the device "
+                "path and baud rate, or the udpin:/udpout:/tcp: address"
+            ) from err
         conn.mav.robust_parsing = True
         self._conn = conn
         self._reset_boot()
@@ -146,8 +173,13 @@ class MavlinkLink(Link):
         return dict(self._mav_stats)
 
     def _transport_stats(self) -> dict[str, Any]:
-        return {**self._extra, "autopilot": self.profile.name if self.profile else None, "fault": self.fault,
-                "imu_source": self._source, "reboot_required": self.reboot_required}
+        return {
+            **self._extra,
+            "autopilot": self.profile.name if self.profile else None,
+            "fault": self.fault,
+            "imu_source": self._source,
+            "reboot_required": self.reboot_required,
+        }
 
     def _receive(self) -> list[Any]:
         conn = self._conn
@@ -175,6 +207,7 @@ class MavlinkLink(Link):
         self.armed = False
         self._boot_params: dict[str, float] | None = None
         self._params: dict[str, float] = {}
+        self._adj: tuple[np.ndarray, dict[str, float]] | None = None
         self._version_msg: Any = None
         self._hello: Hello | None = None
         self._reader: ParamReadAll | None = None
@@ -237,8 +270,10 @@ class MavlinkLink(Link):
             return
         seen = BY_MAV_AUTOPILOT.get(int(m.autopilot))
         if seen is None or (self.expected is not None and seen != self.expected):
-            self._set_fault(f"the autopilot at {self.url} reports MAV_AUTOPILOT {m.autopilot} "
-                            f"({seen or 'unsupported'}); this link is configured for {self.expected or 'px4/ardupilot'}")
+            self._set_fault(
+                f"the autopilot at {self.url} reports MAV_AUTOPILOT {m.autopilot} "
+                f"({seen or 'unsupported'}); this link is configured for {self.expected or 'px4/ardupilot'}"
+            )
             return
         if self.profile is None:
             self.profile = PROFILES[seen](self.instance)
@@ -258,8 +293,13 @@ class MavlinkLink(Link):
         self._stream_asked_at = now
         self._command(CMD_REQUEST_MESSAGE, MSG_ID["AUTOPILOT_VERSION"])
         self._ask_streams()
-        self._reader = ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
-                                    timeout_s=self.param_timeout_s, retries=self.param_retries)
+        self._reader = ParamReadAll(
+            self.profile,
+            self._send_param,
+            now,  # type: ignore[arg-type]
+            timeout_s=self.param_timeout_s,
+            retries=self.param_retries,
+        )
 
     def _ask_streams(self) -> None:
         temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
@@ -281,7 +321,9 @@ class MavlinkLink(Link):
     def _send_param(self, req: object) -> None:
         tgt = self.target_system or 1
         if isinstance(req, ParamSet):
-            self._conn.mav.param_set_send(tgt, MAV_COMP_ID_AUTOPILOT1, req.name.encode("ascii"), req.wire, req.ptype)
+            self._conn.mav.param_set_send(
+                tgt, MAV_COMP_ID_AUTOPILOT1, req.name.encode("ascii"), req.wire, req.ptype
+            )
         elif isinstance(req, ParamRead):
             self._conn.mav.param_request_read_send(tgt, MAV_COMP_ID_AUTOPILOT1, req.name.encode("ascii"), -1)
 
@@ -325,29 +367,50 @@ class MavlinkLink(Link):
         out.append(imu_mod.to_sample(self._seq - 1, imu_mod.ImuReading(r.t_s, gyro, r.accel_g, t), t))  # type: ignore[arg-type]
 
     def _adjust(self, temp_c: float) -> np.ndarray:
-        """What the autopilot subtracts minus what we report it subtracts, at temp_c [deg/s]."""
+        """What the autopilot subtracts minus what we report it subtracts, at temp_c [deg/s].
+
+        The polynomials are worked out once per parameter change (``_adj`` is reset whenever the
+        parameters are read or written), so the per-sample cost is two cubic evaluations.
+        """
         p = self.profile
         if p is None or not self._params:
             return np.zeros(3)
-        eff = self._boot_params if self.reboot_required and self._boot_params is not None else self._params
+        if self._adj is None:
+            boot = self._boot_params
+            eff = boot if self.reboot_required and boot is not None else self._params
+            diff = p.applied(eff) - np.asarray(self._reported(self._params).coeffs_dps, dtype=np.float64)
+            self._adj = (diff, eff)
+        diff, eff = self._adj
         temps = np.array([temp_c])
-        actual = evaluate(p.applied(eff), temps) + p.clamp_adjust(eff, temps)
-        return (actual - evaluate(self._reported(self._params).coeffs_dps, temps))[0]
+        return (evaluate(diff, temps) + p.clamp_adjust(eff, temps))[0]
 
     # ---- time-driven steps -----------------------------------------------------------------------
     def _tick(self, now: float, out: list[Any]) -> None:
-        if self._boot.last_hb is not None and now - self._boot.last_hb > self.heartbeat_timeout_s and \
-                self._hello is not None and self._push is not None:
+        if (
+            self._boot.last_hb is not None
+            and now - self._boot.last_hb > self.heartbeat_timeout_s
+            and self._hello is not None
+            and self._push is not None
+        ):
             self._push.abort("heartbeat lost")
             self._finish_push(out)
-        if (self._imu_rx is not None and now - self._imu_rx > STREAM_STALL_S and now - self._asked_again > 1.0
-                and self._boot.last_hb is not None and now - self._boot.last_hb < self.heartbeat_timeout_s):
+        if (
+            self._imu_rx is not None
+            and now - self._imu_rx > STREAM_STALL_S
+            and now - self._asked_again > 1.0
+            and self._boot.last_hb is not None
+            and now - self._boot.last_hb < self.heartbeat_timeout_s
+        ):
             # heartbeats but no IMU stream: a rebooted autopilot forgets SET_MESSAGE_INTERVAL. Asking
             # again is harmless, and the resumed stream's time stamps show whether it was a new boot.
             self._asked_again = now
             self._ask_streams()
-        if (self._source is None and self._stream_asked_at is not None
-                and now - self._stream_asked_at > self.highres_wait_s and self.profile is not None):
+        if (
+            self._source is None
+            and self._stream_asked_at is not None
+            and now - self._stream_asked_at > self.highres_wait_s
+            and self.profile is not None
+        ):
             self._fallback(now)
         if self._push is not None:
             self._push.tick(now)
@@ -360,8 +423,13 @@ class MavlinkLink(Link):
             self._say_hello(out)
 
     def _ready(self) -> bool:
-        return (self.profile is not None and self._version_msg is not None and self._boot_params is not None
-                and self._t_last is not None and self.fault is None)
+        return (
+            self.profile is not None
+            and self._version_msg is not None
+            and self._boot_params is not None
+            and self._t_last is not None
+            and self.fault is None
+        )
 
     def _after_read(self, out: list[Any]) -> None:
         reader, self._reader = self._reader, None
@@ -371,6 +439,7 @@ class MavlinkLink(Link):
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
             return
         self._params = dict(reader.values)
+        self._adj = None
         if self._boot_params is None:
             self._boot_params = dict(reader.values)
         why = self.profile.problem(self._params)
@@ -382,13 +451,24 @@ class MavlinkLink(Link):
 
     def _say_hello(self, out: list[Any]) -> None:
         v = self._version_msg
-        self.serial = imu_mod.derive_serial(int(v.uid), list(getattr(v, "uid2", []) or []), self.instance,
-                                            self.target_system or 0)
+        self.serial = imu_mod.derive_serial(
+            int(v.uid), list(getattr(v, "uid2", []) or []), self.instance, self.target_system or 0
+        )
         boot_wall = time.time() - float(self._t_last or 0.0)
         boots = self.state.note_boot(self.serial, boot_wall, known_new=self._known_new)
-        self._hello = Hello(self.serial, imu_mod.fw_text(v.flight_sw_version), boots, int(round(self.rate_hz)))
-        log.info("mavlink %s: %s unit %d (uid %x, IMU %d), boot %d, reboot needed for a push: %s", self.url,
-                 self.profile.name, self.serial, int(v.uid), self.instance, boots, self.reboot_required)  # type: ignore[union-attr]
+        self._hello = Hello(
+            self.serial, imu_mod.fw_text(v.flight_sw_version), boots, int(round(self.rate_hz))
+        )
+        log.info(
+            "mavlink %s: %s unit %d (uid %x, IMU %d), boot %d, reboot needed for a push: %s",
+            self.url,
+            self.profile.name,
+            self.serial,
+            int(v.uid),
+            self.instance,
+            boots,
+            self.reboot_required,
+        )  # type: ignore[union-attr]
         out.append(self._hello)
 
     # ---- the daemon's requests -------------------------------------------------------------------
@@ -404,8 +484,13 @@ class MavlinkLink(Link):
                 return
             self._report_wanted = True
             if self._reader is None and self._push is None:
-                self._reader = ParamReadAll(self.profile, self._send_param, now,
-                                            timeout_s=self.param_timeout_s, retries=self.param_retries)
+                self._reader = ParamReadAll(
+                    self.profile,
+                    self._send_param,
+                    now,
+                    timeout_s=self.param_timeout_s,
+                    retries=self.param_retries,
+                )
         elif isinstance(msg, CoeffWrite):
             self._start_push(msg, now, out)
 
@@ -419,15 +504,25 @@ class MavlinkLink(Link):
         lo, hi = self._temp_bounds()
         self._push_write = msg
         self._reader = None
-        self._push = ParamPush(self.profile, np.asarray(msg.coeffs_dps), lo, hi, self._send_param, now,  # type: ignore[arg-type]
-                               timeout_s=self.param_timeout_s, retries=self.param_retries)
+        self._push = ParamPush(
+            self.profile,
+            np.asarray(msg.coeffs_dps),
+            lo,
+            hi,
+            self._send_param,
+            now,  # type: ignore[arg-type]
+            timeout_s=self.param_timeout_s,
+            retries=self.param_retries,
+        )
 
     def _refuse(self, msg: CoeffWrite) -> tuple[str, NakReason]:
         if self.fault:
             return self.fault, NakReason.UNKNOWN_TERMS
         if msg.terms_id != TEMP_POLY3_ID or len(msg.coeffs_dps[0]) != len(TEMP_POLY3_TERMS):
-            return (f"terms_id 0x{msg.terms_id:04x} is not the temperature polynomial this autopilot holds "
-                    f"(0x{TEMP_POLY3_ID:04x}: {', '.join(TEMP_POLY3_TERMS)})"), NakReason.UNKNOWN_TERMS
+            return (
+                f"terms_id 0x{msg.terms_id:04x} is not the temperature polynomial this autopilot holds "
+                f"(0x{TEMP_POLY3_ID:04x}: {', '.join(TEMP_POLY3_TERMS)})"
+            ), NakReason.UNKNOWN_TERMS
         if self.profile is None or self._hello is None:
             return "the autopilot is not identified yet", NakReason.BUSY
         if self.armed:
@@ -436,12 +531,15 @@ class MavlinkLink(Link):
             return "a push is already running", NakReason.BUSY
         lo, hi = self._temp_bounds()
         if not hi - lo >= 1.0:
-            return f"the temperature range seen ({lo:.1f}..{hi:.1f} degC) is too narrow", NakReason.OUT_OF_RANGE
+            return (
+                f"the temperature range seen ({lo:.1f}..{hi:.1f} degC) is too narrow",
+                NakReason.OUT_OF_RANGE,
+            )
         return "", NakReason.BUSY
 
     def _temp_bounds(self) -> tuple[float, float]:
         """TMIN/TMAX: the range seen over all boots (never extrapolate), unless the config fixes them."""
-        lo, hi = (self._range or [np.nan, np.nan])
+        lo, hi = self._range or [np.nan, np.nan]
         if self._hello is not None and self._range:
             lo, hi = self.state.widen(self.serial, lo, hi)
         lo = self.tmin_c if self.tmin_c is not None else lo
@@ -456,22 +554,40 @@ class MavlinkLink(Link):
         res = push.outcome
         if res.params:
             self._params = {**self._params, **res.params}
+        self._adj = None
         if res.ok and self.profile is not None:
             u = self.state.unit(self.serial)
-            u.update(version=write.version, coeffs=[list(r) for r in write.coeffs_dps],
-                     durable={k: res.params[k] for k in self.profile.durable if k in res.params},
-                     target={**res.target, self.profile.enable.name: 1.0})
+            u.update(
+                version=write.version,
+                coeffs=[list(r) for r in write.coeffs_dps],
+                durable={k: res.params[k] for k in self.profile.durable if k in res.params},
+                target={**res.target, self.profile.enable.name: 1.0},
+            )
             self.state.save()
             rep = self._reported(self._params)
             out.append(CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps)))
             if self.reboot_required:
-                log.warning("mavlink %s: v%d is stored; %s applies it only after a reboot", self.url,
-                            write.version, self.profile.name)
+                log.warning(
+                    "mavlink %s: v%d is stored; %s applies it only after a reboot",
+                    self.url,
+                    write.version,
+                    self.profile.name,
+                )
         else:
-            log.error("mavlink %s: push of v%d failed: %s (%s)", self.url, write.version, res.reason,
-                      "previous set restored" if res.restored else "compensation left as read back")
-            out.append(CoeffNak(write.version, coeff_set_crc(write.version, write.terms_id, write.coeffs_dps),
-                                res.nak or int(NakReason.BUSY)))
+            log.error(
+                "mavlink %s: push of v%d failed: %s (%s)",
+                self.url,
+                write.version,
+                res.reason,
+                "previous set restored" if res.restored else "compensation left as read back",
+            )
+            out.append(
+                CoeffNak(
+                    write.version,
+                    coeff_set_crc(write.version, write.terms_id, write.coeffs_dps),
+                    res.nak or int(NakReason.BUSY),
+                )
+            )
 
     def _reported(self, params: dict[str, float]) -> CoeffReport:
         """The set the unit holds, in our terms: our stored version when its parameters are intact."""
@@ -484,7 +600,9 @@ class MavlinkLink(Link):
         if durable and all(params.get(k) == v for k, v in durable.items()):
             version = int(u.get("version", 0))
             if target and all(params.get(k) == v for k, v in target.items()):
-                q = np.asarray(u["coeffs"], dtype=np.float64)  # exactly what was written (float32 on the unit)
+                q = np.asarray(
+                    u["coeffs"], dtype=np.float64
+                )  # exactly what was written (float32 on the unit)
         return CoeffReport(version, TEMP_POLY3_ID, q)
 
     def reboot(self) -> None:

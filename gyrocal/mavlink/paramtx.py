@@ -64,7 +64,9 @@ class OpRunner:
     ``retries`` times in all.
     """
 
-    def __init__(self, profile: Profile, send: Callable[[object], None], timeout_s: float, retries: int) -> None:
+    def __init__(
+        self, profile: Profile, send: Callable[[object], None], timeout_s: float, retries: int
+    ) -> None:
         self.profile, self.send = profile, send
         self.types = profile.types()
         self.timeout_s, self.retries = timeout_s, retries
@@ -116,8 +118,10 @@ class OpRunner:
         if self._tries >= self.retries:
             op = self._ops[0]
             what = "read" if op.value is None else "write"
-            self.error = (f"{op.name}: no PARAM_VALUE after {self._tries} {what} request(s) (the autopilot "
-                          "went silent, or this firmware lacks the parameter)")
+            self.error = (
+                f"{op.name}: no PARAM_VALUE after {self._tries} {what} request(s) (the autopilot "
+                "went silent, or this firmware lacks the parameter)"
+            )
             return
         self.resends += 1
         log.info("no PARAM_VALUE for %s within %.1f s; asking again", self._ops[0].name, self.timeout_s)
@@ -153,8 +157,16 @@ class ParamPush:
     """One push of Q (3, 4) [deg/s] valid over [tmin, tmax] degC. See the module docstring."""
 
     def __init__(
-        self, profile: Profile, q_dps: np.ndarray, tmin: float, tmax: float, send: Callable[[object], None],
-        now: float, *, timeout_s: float = 0.5, retries: int = 4,
+        self,
+        profile: Profile,
+        q_dps: np.ndarray,
+        tmin: float,
+        tmax: float,
+        send: Callable[[object], None],
+        now: float,
+        *,
+        timeout_s: float = 0.5,
+        retries: int = 4,
     ) -> None:
         self.profile = profile
         self.q = np.asarray(q_dps, dtype=np.float64)
@@ -203,14 +215,19 @@ class ParamPush:
             self.before = dict(self.io.values)
             why = p.problem(self.before) or p.check_range(self.q, self.tmin, self.tmax)
             if why:
-                return self._finish(False, why, NakReason.OUT_OF_RANGE if "offset" in why else NakReason.UNKNOWN_TERMS)
+                return self._finish(
+                    False, why, NakReason.OUT_OF_RANGE if "offset" in why else NakReason.UNKNOWN_TERMS
+                )
             self.target = p.to_params(self.q, self.before, self.tmin, self.tmax)
             self._go(Phase.DISABLE, [_Op(p.enable.name, 0.0)], now)
         elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE):
             self._fail = (err, int(NakReason.OUT_OF_RANGE if self.io.rejected else NakReason.BUSY))
             log.error("push failed in phase %s: %s; restoring the previous set", self.phase.value, err)
-            self._go(Phase.RESTORE, [_Op(c.name, self.before[c.name]) for c in p.coeffs
-                                     if c.name in self.before], now)
+            self._go(
+                Phase.RESTORE,
+                [_Op(c.name, self.before[c.name]) for c in p.coeffs if c.name in self.before],
+                now,
+            )
         elif self.phase is Phase.DISABLE:
             self._go(Phase.WRITE, [_Op(k, v) for k, v in self.target.items()], now)
         elif self.phase is Phase.WRITE:
@@ -219,8 +236,11 @@ class ParamPush:
             bad = [k for k, v in self.target.items() if self.io.values.get(k) != v]
             if bad:
                 self._fail = (f"read-back differs for {', '.join(bad)}", int(NakReason.OUT_OF_RANGE))
-                self._go(Phase.RESTORE, [_Op(c.name, self.before[c.name]) for c in p.coeffs
-                                         if c.name in self.before], now)
+                self._go(
+                    Phase.RESTORE,
+                    [_Op(c.name, self.before[c.name]) for c in p.coeffs if c.name in self.before],
+                    now,
+                )
             else:
                 self._go(Phase.ENABLE, [_Op(p.enable.name, 1.0)], now)
         elif self.phase is Phase.ENABLE:
@@ -228,7 +248,9 @@ class ParamPush:
         elif self.phase is Phase.READ_BACK:
             if err:
                 return self._finish(False, f"final read-back: {err}", NakReason.BUSY)
-            ok = p.is_enabled(self.io.values) and all(self.io.values.get(k) == v for k, v in self.target.items())
+            ok = p.is_enabled(self.io.values) and all(
+                self.io.values.get(k) == v for k, v in self.target.items()
+            )
             self._finish(ok, "" if ok else "the final read-back differs from the set written", NakReason.BUSY)
         elif self.phase is Phase.RESTORE:
             self._restored = err is None
@@ -242,8 +264,9 @@ class ParamPush:
             self.io.start([_Op(x.name) for x in p.all_params()], now)
         elif self.phase is Phase.FAILED:
             reason, nak = self._fail or ("push failed", int(NakReason.BUSY))
-            self.outcome = PushOutcome(False, reason, nak, dict(self.io.values), self.target,
-                                       restored=self._restored)
+            self.outcome = PushOutcome(
+                False, reason, nak, dict(self.io.values), self.target, restored=self._restored
+            )
 
     def _go(self, phase: Phase, ops: list[_Op], now: float) -> None:
         self.phase = phase
@@ -259,8 +282,15 @@ class ParamPush:
 class ParamReadAll:
     """Read every parameter of a profile (COEFF_READ, and the context at a switch-on)."""
 
-    def __init__(self, profile: Profile, send: Callable[[object], None], now: float, *,
-                 timeout_s: float = 0.5, retries: int = 4) -> None:
+    def __init__(
+        self,
+        profile: Profile,
+        send: Callable[[object], None],
+        now: float,
+        *,
+        timeout_s: float = 0.5,
+        retries: int = 4,
+    ) -> None:
         self.profile = profile
         self.io = OpRunner(profile, send, timeout_s, retries)
         self.io.start([_Op(p.name) for p in profile.all_params()], now)

@@ -111,7 +111,9 @@ class Profile(ABC):
         return {p.name: p.ptype for p in self.all_params()}
 
     @abstractmethod
-    def to_params(self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float) -> dict[str, float]:
+    def to_params(
+        self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float
+    ) -> dict[str, float]:
         """Coefficient parameter values (float32) for Q (3, 4) [deg/s per degC^k]; see module docstring."""
 
     @abstractmethod
@@ -142,7 +144,8 @@ class Profile(ABC):
 
         peak = float(np.max(np.abs(evaluate(q_dps, temps))))
         if peak > self.max_offset_dps:
-            return f"offset reaches {peak:.3g} deg/s over {tmin:.1f}..{tmax:.1f} degC (limit {self.max_offset_dps})"
+            return (f"offset reaches {peak:.3g} deg/s over {tmin:.1f}..{tmax:.1f} degC "
+                    f"(limit {self.max_offset_dps})")
         return None
 
 
@@ -156,7 +159,9 @@ class Px4(Profile):
     def __init__(self, instance: int = 0) -> None:
         super().__init__(instance)
         i = instance
-        self.p_id, self.p_tref, self.p_tmin, self.p_tmax = (f"TC_G{i}_{s}" for s in ("ID", "TREF", "TMIN", "TMAX"))
+        self.p_id, self.p_tref, self.p_tmin, self.p_tmax = (
+            f"TC_G{i}_{s}" for s in ("ID", "TREF", "TMIN", "TMAX")
+        )
         self.p_x = [[f"TC_G{i}_X{k}_{a}" for k in range(4)] for a in range(3)]
         self.p_cal_id = f"CAL_GYRO{i}_ID"
         self.p_cal_off = [f"CAL_GYRO{i}_{a}OFF" for a in AXES]
@@ -172,7 +177,11 @@ class Px4(Profile):
 
     @property
     def context(self) -> list[Param]:
-        return [Param(self.p_cal_id, INT32), *(Param(n) for n in self.p_cal_off), Param("SENS_BOARD_ROT", INT32)]
+        return [
+            Param(self.p_cal_id, INT32),
+            *(Param(n) for n in self.p_cal_off),
+            Param("SENS_BOARD_ROT", INT32),
+        ]
 
     @property
     def durable(self) -> list[str]:
@@ -181,12 +190,18 @@ class Px4(Profile):
     def _caloff_rad(self, p: Mapping[str, float]) -> np.ndarray:
         return np.array([p.get(n, 0.0) for n in self.p_cal_off])
 
-    def to_params(self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float) -> dict[str, float]:
+    def to_params(
+        self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float
+    ) -> dict[str, float]:
         tref = round(tmin + tmax) / 2.0  # a half degree: exact in float32, central for conditioning
         a = shift(np.asarray(q_dps, dtype=np.float64) / DEG_PER_RAD, tref)
         a[:, 0] -= self._caloff_rad(ctx)  # CAL_GYROn_xOFF is subtracted as well; it stays as it is
-        out = {self.p_id: float(ctx.get(self.p_cal_id, 0.0)), self.p_tref: f32(tref),
-               self.p_tmin: f32(tmin), self.p_tmax: f32(tmax)}
+        out = {
+            self.p_id: float(ctx.get(self.p_cal_id, 0.0)),
+            self.p_tref: f32(tref),
+            self.p_tmin: f32(tmin),
+            self.p_tmax: f32(tmax),
+        }
         for ax in range(3):
             for k in range(4):
                 out[self.p_x[ax][k]] = f32(a[ax, k])
@@ -194,7 +209,9 @@ class Px4(Profile):
 
     def _thermal_on(self, p: Mapping[str, float]) -> bool:
         # the thermal offset applies only to the gyro whose device id matches TC_Gn_ID (set_sensor_id)
-        return self.is_enabled(p) and p.get(self.p_id) == p.get(self.p_cal_id) and p.get(self.p_id, 0.0) != 0.0
+        return (
+            self.is_enabled(p) and p.get(self.p_id) == p.get(self.p_cal_id) and p.get(self.p_id, 0.0) != 0.0
+        )
 
     def _a(self, p: Mapping[str, float]) -> np.ndarray:
         return np.array([[p.get(self.p_x[ax][k], 0.0) for k in range(4)] for ax in range(3)])
@@ -218,8 +235,10 @@ class Px4(Profile):
 
     def problem(self, p: Mapping[str, float]) -> str | None:
         if p.get("SENS_BOARD_ROT", 0.0) != 0.0:
-            return ("SENS_BOARD_ROT is not 0: PX4 applies TC_G offsets in the sensor frame and HIGHRES_IMU is "
-                    "in the body frame; gyrocal does not rotate coefficients yet")
+            return (
+                "SENS_BOARD_ROT is not 0: PX4 applies TC_G offsets in the sensor frame and HIGHRES_IMU is "
+                "in the body frame; gyrocal does not rotate coefficients yet"
+            )
         if not p.get(self.p_cal_id):
             return f"{self.p_cal_id} is 0: PX4 does not know this gyro's device id (run a gyro calibration)"
         return None
@@ -256,8 +275,12 @@ class ArduPilot(Profile):
 
     @property
     def coeffs(self) -> list[Param]:
-        return [Param(self.p_tmin), Param(self.p_tmax), *(Param(x) for row in self.p_g for x in row),
-                *(Param(x) for x in self.p_off)]
+        return [
+            Param(self.p_tmin),
+            Param(self.p_tmax),
+            *(Param(x) for row in self.p_g for x in row),
+            *(Param(x) for x in self.p_off),
+        ]
 
     @property
     def context(self) -> list[Param]:
@@ -279,7 +302,9 @@ class ArduPilot(Profile):
     def _g(self, p: Mapping[str, float]) -> np.ndarray:
         return np.array([[p.get(x, 0.0) for x in row] for row in self.p_g])
 
-    def to_params(self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float) -> dict[str, float]:
+    def to_params(
+        self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float
+    ) -> dict[str, float]:
         a = shift(np.asarray(q_dps, dtype=np.float64) / DEG_PER_RAD, self.TREF_C)
         g = np.array([[f32(v) for v in row] for row in a[:, 1:] * self.SCALE])
         tmin32, tmax32 = f32(tmin), f32(tmax)
@@ -313,8 +338,10 @@ class ArduPilot(Profile):
 
     def problem(self, p: Mapping[str, float]) -> str | None:
         if p.get("AHRS_ORIENTATION", 0.0) != 0.0:
-            return ("AHRS_ORIENTATION is not 0: ArduPilot applies INS_TCAL in the sensor frame and RAW_IMU is in "
-                    "the body frame; gyrocal does not rotate coefficients yet")
+            return (
+                "AHRS_ORIENTATION is not 0: ArduPilot applies INS_TCAL in the sensor frame and RAW_IMU is in "
+                "the body frame; gyrocal does not rotate coefficients yet"
+            )
         return None
 
 

@@ -22,8 +22,9 @@ def _import() -> tuple[ModuleType, ModuleType]:
         from pymavlink import mavutil
         from pymavlink.dialects.v20 import ardupilotmega as dialect
     except ImportError as err:  # the extra is not installed
-        raise LinkError("the mavlink link needs pymavlink; install it with pip install 'gyrocal[mavlink]'") \
-            from err
+        raise LinkError(
+            "the mavlink link needs pymavlink; install it with pip install 'gyrocal[mavlink]'"
+        ) from err
     return mavutil, dialect
 
 

@@ -35,13 +35,17 @@ class LinkState:
                 doc = json.loads(self.path.read_text(encoding="utf-8"))
                 self.units = dict(doc.get("units", {}))
             except (OSError, ValueError, AttributeError) as err:
-                log.error("mavlink state %s unreadable (%s); starting afresh, versions read as 0", self.path, err)
+                log.error(
+                    "mavlink state %s unreadable (%s); starting afresh, versions read as 0", self.path, err
+                )
                 self.units = {}
 
     def unit(self, serial: int) -> dict[str, Any]:
         return self.units.setdefault(str(serial), {})
 
-    def note_boot(self, serial: int, boot_wall: float, *, known_new: bool = False, tolerance_s: float = 5.0) -> int:
+    def note_boot(
+        self, serial: int, boot_wall: float, *, known_new: bool = False, tolerance_s: float = 5.0
+    ) -> int:
         """The boot count for a boot at ``boot_wall`` [s since epoch]; +1 when it is a new boot.
 
         ``known_new``: the link saw the reboot itself (time went back, heartbeat returned). Otherwise
@@ -73,4 +77,6 @@ class LinkState:
             tmp.write_text(json.dumps({"units": self.units}, indent=1, sort_keys=True), encoding="utf-8")
             os.replace(tmp, self.path)
         except OSError as err:
-            log.error("mavlink state %s cannot be written (%s); the version survives only in memory", self.path, err)
+            log.error(
+                "mavlink state %s cannot be written (%s); the version survives only in memory", self.path, err
+            )

@@ -83,8 +83,15 @@ class VirtualAutopilot:
     """One autopilot with one gyro. ``kind``: "px4" or "ardupilot". ``rate_hz``: IMU output rate."""
 
     def __init__(
-        self, kind: str, rate_hz: float = 250.0, seed: int = 0, *, truth: TruthModel | None = None,
-        thermal: Thermal | None = None, faults: AutopilotFaults | None = None, sysid: int = 1,
+        self,
+        kind: str,
+        rate_hz: float = 250.0,
+        seed: int = 0,
+        *,
+        truth: TruthModel | None = None,
+        thermal: Thermal | None = None,
+        faults: AutopilotFaults | None = None,
+        sysid: int = 1,
         noise_dps: float = 0.05,
     ) -> None:
         if kind not in ("px4", "ardupilot"):
@@ -119,7 +126,9 @@ class VirtualAutopilot:
             vals[prm.name] = 0.0
             types[prm.name] = prm.ptype
         if self.kind == "px4":
-            vals.update({"TC_G0_TREF": 25.0, "TC_G0_TMIN": 0.0, "TC_G0_TMAX": 100.0, "CAL_GYRO0_ID": 2490378.0})
+            vals.update(
+                {"TC_G0_TREF": 25.0, "TC_G0_TMIN": 0.0, "TC_G0_TMAX": 100.0, "CAL_GYRO0_ID": 2490378.0}
+            )
             rng = np.random.default_rng([self.seed, 0xCA1])
             for ax in "XYZ":  # a gyro calibration done once at the factory [rad/s]
                 vals[f"CAL_GYRO0_{ax}OFF"] = f32(rng.normal(0.0, 0.002))
@@ -127,7 +136,9 @@ class VirtualAutopilot:
             vals.update({"INS_TCAL1_TMAX": 70.0, "INS_GYR1_CALTEMP": -300.0})
             vals["INS_GYR_CAL"], types["INS_GYR_CAL"] = 1.0, INT8
         vals["SYSID_THISMAV" if self.kind == "ardupilot" else "MAV_SYS_ID"] = float(self.sysid)
-        types["SYSID_THISMAV" if self.kind == "ardupilot" else "MAV_SYS_ID"] = INT32 if self.kind == "px4" else INT8
+        types["SYSID_THISMAV" if self.kind == "ardupilot" else "MAV_SYS_ID"] = (
+            INT32 if self.kind == "px4" else INT8
+        )
         return vals, types
 
     def flash_state(self) -> dict[str, Any]:
@@ -166,7 +177,7 @@ class VirtualAutopilot:
         return float(self.thermal.temp_c(np.array([t_s]))[0])
 
     def _px4_poll(self, t_s: float, temp: float, force: bool = False) -> None:
-        """temperature_compensation at 1 Hz: republish the offset when T moved > 1 degC (or params changed)."""
+        """temperature_compensation at 1 Hz: republish the offset when T moved > 1 degC or params changed."""
         b = self.boot
         if not b.tc_running or (t_s < b.next_tc_poll_s and not force):
             return
@@ -176,7 +187,9 @@ class VirtualAutopilot:
             return
         if b.t_pub_c is None or abs(temp - b.t_pub_c) > 1.0 or force:
             d = min(max(temp, p["TC_G0_TMIN"]), p["TC_G0_TMAX"]) - p["TC_G0_TREF"]
-            b.thermal_pub_rad = np.array([sum(p[f"TC_G0_X{k}_{a}"] * d**k for k in range(4)) for a in range(3)])
+            b.thermal_pub_rad = np.array(
+                [sum(p[f"TC_G0_X{k}_{a}"] * d**k for k in range(4)) for a in range(3)]
+            )
             b.t_pub_c = temp
 
     def compensation_dps(self, temp_c: float) -> np.ndarray:
@@ -230,8 +243,9 @@ class VirtualAutopilot:
         usec = int(round(ts * 1e6))
         if mid == 105 and self.kind == "px4":
             g = gyro_dps * RAD
-            return d.MAVLink_highres_imu_message(usec, *acc, *g, 0.2, 0.0, 0.4, 1013.0, 0.0, 100.0,
-                                                 temp - 3.0, 0x1FFF, 0)  # baro temperature, not the IMU's
+            return d.MAVLink_highres_imu_message(
+                usec, *acc, *g, 0.2, 0.0, 0.4, 1013.0, 0.0, 100.0, temp - 3.0, 0x1FFF, 0
+            )  # baro temperature, not the IMU's
         temp_c = int(max(-32768, min(32767, temp * 100.0)))
         mrad = [int(v) for v in gyro_dps * RAD * 1000.0]  # C float -> int16 truncates toward zero
         mg = [int(v) for v in acc * 1000.0 / G0]
@@ -244,8 +258,9 @@ class VirtualAutopilot:
     # -- host messages --------------------------------------------------------------------------
     def handle(self, msg: Any, t_s: float) -> list[Any]:
         kind = msg.get_type()
-        if kind in ("PARAM_SET", "PARAM_REQUEST_READ", "COMMAND_LONG") and \
-                getattr(msg, "target_system", self.sysid) not in (0, self.sysid):
+        if kind in ("PARAM_SET", "PARAM_REQUEST_READ", "COMMAND_LONG") and getattr(
+            msg, "target_system", self.sysid
+        ) not in (0, self.sysid):
             return []
         if kind == "PARAM_REQUEST_READ":
             name = _name(msg.param_id)
@@ -259,8 +274,9 @@ class VirtualAutopilot:
     def _param_value(self, name: str) -> Any:
         ptype = self.ptypes[name]
         wire = encode_param(self.params[name], ptype, self.profile.bytewise)
-        return self.d.MAVLink_param_value_message(name.encode("ascii"), wire, ptype, len(self.order),
-                                                  self.order.index(name))
+        return self.d.MAVLink_param_value_message(
+            name.encode("ascii"), wire, ptype, len(self.order), self.order.index(name)
+        )
 
     def _param_set(self, msg: Any, t_s: float) -> list[Any]:
         name = _name(msg.param_id)
@@ -320,15 +336,21 @@ class VirtualAutopilot:
         else:
             caps, fw = 131072 | 8192, (4 << 24) | (5 << 16) | (7 << 8) | 255
         uid2 = list(struct.pack("<Q", self.uid)) + [0] * 10
-        return d.MAVLink_autopilot_version_message(caps, fw, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x11,
-                                                   self.uid, uid2)
+        return d.MAVLink_autopilot_version_message(
+            caps, fw, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x11, self.uid, uid2
+        )
 
     def status(self) -> dict[str, Any]:
         t = self.boot.sample_index / self.rate_hz
         temp = self.temp_c(t)
-        return {"autopilot": self.kind, "boot": self.boot_count, "t_s": t, "temp_c": temp,
-                "offset_error_dps": self.offset_error_dps(temp).tolist(),
-                "params": {k: v for k, v in self.params.items()}}
+        return {
+            "autopilot": self.kind,
+            "boot": self.boot_count,
+            "t_s": t,
+            "temp_c": temp,
+            "offset_error_dps": self.offset_error_dps(temp).tolist(),
+            "params": {k: v for k, v in self.params.items()},
+        }
 
 
 def _name(raw: Any) -> str:

@@ -114,8 +114,15 @@ class Udp:
 class AutopilotRunner:
     """Pace the virtual autopilot in real time over a transport."""
 
-    def __init__(self, ap: VirtualAutopilot, transport: Any, *, duration_s: float = 0.0,
-                 status_path: str | None = None, flash_path: str | None = None) -> None:
+    def __init__(
+        self,
+        ap: VirtualAutopilot,
+        transport: Any,
+        *,
+        duration_s: float = 0.0,
+        status_path: str | None = None,
+        flash_path: str | None = None,
+    ) -> None:
         self.ap, self.tr = ap, transport
         self.duration_s = duration_s
         self.status_path, self.flash_path = status_path, flash_path
@@ -182,23 +189,49 @@ class AutopilotRunner:
 def configure(p: argparse.ArgumentParser) -> None:
     """The flags ``gyrocal sim`` adds for ``--link mavlink`` (the rest are shared)."""
     g = p.add_argument_group("virtual autopilot (--link mavlink)")
-    g.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="which autopilot (default px4)")
-    g.add_argument("--mavlink-udp", metavar="HOST:PORT", help="send MAVLink over UDP to HOST:PORT instead of a pty")
-    g.add_argument("--warmup-tau", type=float, default=120.0, metavar="S",
-                   help="warm-up time constant 20 -> 50 degC [s] (default 120)")
-    g.add_argument("--drop-param-values", type=int, default=0, metavar="N",
-                   help="fault: drop the PARAM_VALUE echo of the next N PARAM_SETs")
-    g.add_argument("--reject-param", default="", metavar="NAME", help="fault: refuse writes of NAME (echo differs)")
-    g.add_argument("--reboot-after-sets", type=int, default=0, metavar="N",
-                   help="fault: reboot after the N-th PARAM_SET of a boot")
+    g.add_argument(
+        "--autopilot", choices=("px4", "ardupilot"), default="px4", help="which autopilot (default px4)"
+    )
+    g.add_argument(
+        "--mavlink-udp", metavar="HOST:PORT", help="send MAVLink over UDP to HOST:PORT instead of a pty"
+    )
+    g.add_argument(
+        "--warmup-tau",
+        type=float,
+        default=120.0,
+        metavar="S",
+        help="warm-up time constant 20 -> 50 degC [s] (default 120)",
+    )
+    g.add_argument(
+        "--drop-param-values",
+        type=int,
+        default=0,
+        metavar="N",
+        help="fault: drop the PARAM_VALUE echo of the next N PARAM_SETs",
+    )
+    g.add_argument(
+        "--reject-param", default="", metavar="NAME", help="fault: refuse writes of NAME (echo differs)"
+    )
+    g.add_argument(
+        "--reboot-after-sets",
+        type=int,
+        default=0,
+        metavar="N",
+        help="fault: reboot after the N-th PARAM_SET of a boot",
+    )
 
 
 def main(args: argparse.Namespace) -> int:
     faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets)
     if args.warmup_tau <= 0:
         raise ConfigError("--warmup-tau must be > 0 s")
-    ap = VirtualAutopilot(args.autopilot, args.rate, args.seed, faults=faults,
-                          thermal=Thermal(ambient_c=20.0, rise_c=30.0, tau_s=args.warmup_tau))
+    ap = VirtualAutopilot(
+        args.autopilot,
+        args.rate,
+        args.seed,
+        faults=faults,
+        thermal=Thermal(ambient_c=20.0, rise_c=30.0, tau_s=args.warmup_tau),
+    )
     if args.flash and Path(args.flash).exists():
         try:
             ap.load_flash(json.loads(Path(args.flash).read_text(encoding="utf-8")))
@@ -211,8 +244,9 @@ def main(args: argparse.Namespace) -> int:
         transport: Any = Udp(host or "127.0.0.1", int(port))
     else:
         transport = RawPty(args.pty_link)
-    runner = AutopilotRunner(ap, transport, duration_s=args.duration, status_path=args.status_json,
-                             flash_path=args.flash)
+    runner = AutopilotRunner(
+        ap, transport, duration_s=args.duration, status_path=args.status_json, flash_path=args.flash
+    )
     signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
     signal.signal(signal.SIGINT, lambda *_: runner.request_stop())
     signal.signal(signal.SIGUSR1, lambda *_: runner.request_power_cycle())

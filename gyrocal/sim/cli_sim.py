@@ -37,7 +37,7 @@ MAX_RATE_HZ = 10_000.0
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link", choices=("pty", "can", "mavlink"), default="pty",
-                   help="transport (default pty); mavlink: a virtual PX4/ArduPilot (gyrocal/sim/autopilot_run.py)")
+                   help="transport (default pty); mavlink: a virtual PX4 or ArduPilot autopilot")
     p.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="samples per second (default 200)")
     p.add_argument("--seed", type=int, default=0, help="truth seed: same seed, same output (default 0)")
     p.add_argument("--serial", type=int, default=4242, help="unit serial number (default 4242)")
