@@ -27,6 +27,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "url": ((str,), "auto", "write a device such as /dev/gyrocal-imu, a pyserial URL, or `auto`"),
         "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
         "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}"),
+        "mavlink": ((dict,), {}, "write MAVLink link options, e.g. {autopilot: px4} (docs/mavlink.md)"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
     },
     "virtual_unit": {
@@ -173,8 +174,8 @@ def _fail(name: str, dotted: str, value: Any, fix: str) -> None:
 
 def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     link, est, val = s["link"], s["estimator"], s["validation"]
-    if link["kind"] not in ("serial", "can"):
-        _fail(name, "link.kind", link["kind"], "write `serial` or `can`")
+    if link["kind"] not in ("serial", "can", "mavlink"):
+        _fail(name, "link.kind", link["kind"], "write `serial`, `can` or `mavlink`")
     if link["kind"] == "can" and not link["can"] and not s["virtual_unit"]["enabled"]:
         _fail(name, "link.can", link["can"], "give python-can Bus arguments, e.g. {interface: socketcan, "
               "channel: can0}")

@@ -99,6 +99,10 @@ class Engine:
         backoff = {"backoff_max_s": float(c.get("reconnect_max_s", 5.0))}
         if c["kind"] == "can":
             return {"kind": "can", "bus": dict(c["can"]), **backoff}
+        if c["kind"] == "mavlink":  # options under link.mavlink; docs/mavlink.md
+            mav = {"state_file": str(self.cfg.state_dir / "mavlink.json"), **dict(c.get("mavlink") or {})}
+            return {"kind": "mavlink", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **mav,
+                    **backoff}
         return {"kind": "serial", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **backoff}
 
     def open(self, wait: bool = True) -> None:

@@ -6,8 +6,8 @@ Which message carries what (docs/mavlink.md cites the senders):
   boot]; x/y/zgyro [rad/s] body frame after CAL_GYRO offsets and TC_G thermal offsets, minus the
   EKF2 gyro bias estimate; x/y/zacc [m/s^2]; ``temperature`` is the barometer's, so it is NOT used.
 - RAW_IMU (ArduPilot, send_raw_imu): time_usec [us since boot]; gyro [mrad/s] = ins.get_gyro(0)*1000
-  (INS_TCAL and INS_GYROFFS applied, body frame), truncated to int16; accel [mG]; temperature
-  [cdegC] of IMU 0 (0 = not given).
+  (INS_TCAL and INS_GYROFFS applied, body frame), truncated to int16 (read back at each step's
+  centre, see ``bin_centre``); accel [mG]; temperature [cdegC] of IMU 0 (0 = not given).
 - SCALED_IMU/2/3 (PX4: vehicle_imu instance 0/1/2; ArduPilot: IMU 1/2): time_boot_ms; gyro [mrad/s];
   accel [mG]; temperature [cdegC] of that IMU (0 = not given).
 
@@ -63,11 +63,22 @@ def decode(msg: object) -> ImuReading | None:
         temp = getattr(m, "temperature", 0)
         return ImuReading(
             t,
-            (m.xgyro * k, m.ygyro * k, m.zgyro * k),
-            (m.xacc * 1e-3, m.yacc * 1e-3, m.zacc * 1e-3),
+            (bin_centre(m.xgyro) * k, bin_centre(m.ygyro) * k, bin_centre(m.zgyro) * k),
+            (bin_centre(m.xacc) * 1e-3, bin_centre(m.yacc) * 1e-3, bin_centre(m.zacc) * 1e-3),
             temp * 0.01 if temp else None,
         )
     return None
+
+
+def bin_centre(v: int) -> float:
+    """The centre of the interval a C float -> int16 conversion (truncation toward zero) maps to v.
+
+    Truncation puts [v, v+1) on v > 0 and (v-1, v] on v < 0, so a mean of truncated values is biased
+    toward zero by up to half a step (0.5 mrad/s = 103 deg/h for the gyro). Taking each bin's centre
+    removes most of that bias when the noise dithers the signal over a step or more; the zero bin
+    (-1, 1) keeps a smaller bias (docs/mavlink.md).
+    """
+    return v + 0.5 if v > 0 else (v - 0.5 if v < 0 else 0.0)
 
 
 def to_sample(seq: int, r: ImuReading, temp_c: float) -> Sample:

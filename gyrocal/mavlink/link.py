@@ -49,7 +49,7 @@ from gyrocal.protocol.messages import (
     NakReason,
     coeff_set_crc,
 )
-from gyrocal.protocol.termsets import TEMP_POLY3_ID, TEMP_POLY3_TERMS
+from gyrocal.protocol.termsets import TEMP_POLY3_ID, TEMP_POLY3_TERMS, terms_id
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ class MavlinkLink(Link):
     @property
     def term_sets(self) -> dict[int, tuple[str, ...]]:
         """Term sets this unit can hold: one cubic polynomial in temperature per axis, no gravity terms."""
-        return {TEMP_POLY3_ID: TEMP_POLY3_TERMS}
+        return {terms_id(TEMP_POLY3_TERMS[:k]): TEMP_POLY3_TERMS[:k] for k in (4, 3, 2)}
 
     @property
     def reboot_required(self) -> bool | None:
@@ -504,9 +504,11 @@ class MavlinkLink(Link):
         lo, hi = self._temp_bounds()
         self._push_write = msg
         self._reader = None
+        q = np.zeros((3, 4))
+        q[:, : len(msg.coeffs_dps[0])] = np.asarray(msg.coeffs_dps)  # a shorter prefix: higher powers 0
         self._push = ParamPush(
             self.profile,
-            np.asarray(msg.coeffs_dps),
+            q,
             lo,
             hi,
             self._send_param,
@@ -518,10 +520,11 @@ class MavlinkLink(Link):
     def _refuse(self, msg: CoeffWrite) -> tuple[str, NakReason]:
         if self.fault:
             return self.fault, NakReason.UNKNOWN_TERMS
-        if msg.terms_id != TEMP_POLY3_ID or len(msg.coeffs_dps[0]) != len(TEMP_POLY3_TERMS):
+        names = self.term_sets.get(msg.terms_id)
+        if names is None or len(msg.coeffs_dps[0]) != len(names):
             return (
                 f"terms_id 0x{msg.terms_id:04x} is not the temperature polynomial this autopilot holds "
-                f"(0x{TEMP_POLY3_ID:04x}: {', '.join(TEMP_POLY3_TERMS)})"
+                f"(0x{TEMP_POLY3_ID:04x}: {', '.join(TEMP_POLY3_TERMS)}, or its first 3 or 2 terms)"
             ), NakReason.UNKNOWN_TERMS
         if self.profile is None or self._hello is None:
             return "the autopilot is not identified yet", NakReason.BUSY
@@ -560,6 +563,7 @@ class MavlinkLink(Link):
             u.update(
                 version=write.version,
                 coeffs=[list(r) for r in write.coeffs_dps],
+                terms_id=write.terms_id,
                 durable={k: res.params[k] for k in self.profile.durable if k in res.params},
                 target={**res.target, self.profile.enable.name: 1.0},
             )
