@@ -24,7 +24,7 @@ from gyrocal.protocol.messages import (  # noqa: E402
     NakReason,
     coeff_set_crc,
 )
-from gyrocal.protocol.termsets import TEMP_POLY3_ID  # noqa: E402
+from gyrocal.protocol.termsets import TEMP_POLY2_ID, TEMP_POLY3_ID  # noqa: E402
 from gyrocal.sim.autopilot import VirtualAutopilot  # noqa: E402
 from tests.sim_helpers import SimProcess, free_udp_port, read_status, wait_for  # noqa: E402
 
@@ -93,7 +93,7 @@ def reconstruction_error_dps(ring: RingBuffer, report: CoeffReport, kind: str, b
     ap.power_on()
     raw_true = ap._raw_dps(s["temp"])
     out = np.column_stack([s["wx"], s["wy"], s["wz"]])
-    rebuilt = out + evaluate(np.asarray(report.coeffs_dps), s["temp"])
+    rebuilt = out + evaluate(np.asarray(report.coeffs_dps), s["temp"])  # any prefix of the cubic
     return np.mean(rebuilt - raw_true, axis=0)
 
 
@@ -105,7 +105,10 @@ def test_px4_over_a_pty_hello_samples_push_and_reboot(tmp_path: Path) -> None:
             hello = col.of(Hello)[0]
             assert hello.fw_version == "1.14.0" and hello.boot_count == 1 and hello.rate_hz == 250
             assert link.reboot_required is True  # TC_G_ENABLE was 0 at this boot
-            assert link.term_sets[TEMP_POLY3_ID] == ("1", "temp", "temp^2", "temp^3") and len(link.term_sets) == 3
+            assert (
+                link.term_sets[TEMP_POLY3_ID] == ("1", "temp", "temp^2", "temp^3")
+                and len(link.term_sets) == 3
+            )
             assert wait_for(lambda: ring.pushed > 500, 15)
             link.send(CoeffRead())
             assert wait_for(lambda: col.of(CoeffReport), 10)
@@ -145,13 +148,15 @@ def test_ardupilot_over_udp_push_survives_lost_echoes(tmp_path: Path) -> None:
             assert wait_for(lambda: col.of(Hello), 15)
             assert link.stats()["imu_source"] == "RAW_IMU" and link.reboot_required is False
             assert wait_for(lambda: ring.pushed > 500, 15)
-            link.send(CoeffWrite(3, TEMP_POLY3_ID, Q))
+            q2 = Q[:, :3]  # the quadratic prefix, as the daemon learns it: the link pads the cubic with 0
+            link.send(CoeffWrite(3, TEMP_POLY2_ID, q2))
             assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
-            assert col.of(CoeffAck) == [CoeffAck(3, coeff_set_crc(3, TEMP_POLY3_ID, Q))]
+            assert col.of(CoeffAck) == [CoeffAck(3, coeff_set_crc(3, TEMP_POLY2_ID, q2))]
             assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 1.0)
             link.send(CoeffRead())
             assert wait_for(lambda: col.of(CoeffReport), 10)
             rep = col.of(CoeffReport)[-1]
+            assert rep.terms_id == TEMP_POLY2_ID and np.array_equal(np.asarray(rep.coeffs_dps), q2)
             ring.pop()
             assert wait_for(lambda: ring.pushed > ring.popped + 1000, 15)
             err = reconstruction_error_dps(ring, rep, "ardupilot", 1)

@@ -378,7 +378,9 @@ class MavlinkLink(Link):
         if self._adj is None:
             boot = self._boot_params
             eff = boot if self.reboot_required and boot is not None else self._params
-            diff = p.applied(eff) - np.asarray(self._reported(self._params).coeffs_dps, dtype=np.float64)
+            rep = np.asarray(self._reported(self._params).coeffs_dps, dtype=np.float64)
+            diff = p.applied(eff)
+            diff[:, : rep.shape[1]] -= rep  # a quadratic or linear set: its missing powers are 0
             self._adj = (diff, eff)
         diff, eff = self._adj
         temps = np.array([temp_c])
@@ -604,9 +606,8 @@ class MavlinkLink(Link):
         if durable and all(params.get(k) == v for k, v in durable.items()):
             version = int(u.get("version", 0))
             if target and all(params.get(k) == v for k, v in target.items()):
-                q = np.asarray(
-                    u["coeffs"], dtype=np.float64
-                )  # exactly what was written (float32 on the unit)
+                # exactly what was written, in its own term set (the unit holds its float32 rounding)
+                return CoeffReport(version, int(u.get("terms_id", TEMP_POLY3_ID)), u["coeffs"])
         return CoeffReport(version, TEMP_POLY3_ID, q)
 
     def reboot(self) -> None:
