@@ -144,8 +144,10 @@ class Profile(ABC):
 
         peak = float(np.max(np.abs(evaluate(q_dps, temps))))
         if peak > self.max_offset_dps:
-            return (f"offset reaches {peak:.3g} deg/s over {tmin:.1f}..{tmax:.1f} degC "
-                    f"(limit {self.max_offset_dps})")
+            return (
+                f"offset reaches {peak:.3g} deg/s over {tmin:.1f}..{tmax:.1f} degC "
+                f"(limit {self.max_offset_dps})"
+            )
         return None
 
 
