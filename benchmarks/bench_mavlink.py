@@ -1,9 +1,10 @@
 """Benchmark: the real daemon (``gyrocal run``, link kind mavlink) calibrates virtual autopilots.
 
 For each autopilot (PX4, ArduPilot): start ``gyrocal sim --link mavlink`` on a pty (a board warming
-from 20 to 50 degC), run the daemon with the temperature polynomial as its model until it has pushed
-a set (or a time limit), stop both, and compare the gyro offset error over the temperature range the
-daemon saw, before and after the push, in deg/h:
+from 20 to 50 degC), run the daemon with the temperature polynomial as its model through the warm-up
+(4 time constants, at least until its first push; it pushes again when a wider range improves the
+set), stop both, and compare the gyro offset error over the temperature range of the set the
+autopilot holds at the end (its TMIN..TMAX), before and after, in deg/h:
 
     error(T) = true raw offset(T) - what the autopilot subtracts at T with its parameters
 
@@ -140,6 +141,7 @@ def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> d
     return {
         "status": status,
         "pushed_after_s": pushed_after,
+        "pushes": pushes,
         "flash": json.loads((work / "flash.json").read_text()),
     }
 
