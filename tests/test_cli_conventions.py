@@ -237,3 +237,33 @@ def test_analyze_without_the_extra_says_how_to_install_it(tmp_path: Path) -> Non
     out = _lean("analyze", str(tmp_path / "x.csv"), "--json", str(tmp_path / "o.json"))
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "pip install 'gyrocal[analysis]'" in out.stderr and out.stderr.startswith("gyrocal: error:")
+
+
+# --- python-can conventions on `gyrocal sim` -------------------------------------------------------------
+
+def _sim_bus(argv: list[str]) -> dict:
+    from gyrocal.cli import build_parser
+    from gyrocal.sim.cli_sim import can_bus_kwargs
+
+    return can_bus_kwargs(build_parser(["sim"]).parse_args(["sim", "--link", "can", *argv]))
+
+
+def test_sim_takes_python_cans_i_c_b_and_bus_kwargs(tmp_path: Path, monkeypatch) -> None:
+    for var in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert _sim_bus(["-i", "virtual", "-c", "gyro", "-b", "1000000", "--bus-kwargs",
+                     "receive_own_messages=True", "rx_queue_size=64"]) == {
+        "interface": "virtual", "channel": "gyro", "bitrate": 1000000, "receive_own_messages": True,
+        "rx_queue_size": 64}
+    assert _sim_bus([]) == {"interface": "udp_multicast", "channel": "239.74.163.2"}  # nothing configured
+    assert _sim_bus(["--can-interface", "udp_multicast", "--can-port", "4000"])["port"] == 4000  # old names
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "bench")
+    assert _sim_bus([]) == {"interface": "virtual", "channel": "bench"}  # python-can's environment
+    with pytest.raises(SystemExit):
+        _sim_bus(["-i", "no_such_bus"])
+    from gyrocal.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="KEY=VALUE"):
+        _sim_bus(["--bus-kwargs", "oops"])

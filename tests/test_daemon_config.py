@@ -61,8 +61,10 @@ def test_run_with_an_unknown_port_says_so_in_one_line(tmp_path: Path, capsys) ->
     path.write_text(f"link: {{url: /dev/does-not-exist-42}}\nstate_dir: {tmp_path}/s\n"
                     f"control_socket: {tmp_path}/c.sock\n")
     assert main(["run", "--config", str(path)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "/dev/does-not-exist-42" in err[-1]
+    err = capsys.readouterr().err.strip().splitlines()  # the daemon's log lines are on stderr too
+    fatal = [ln for ln in err if "error:" in ln]
+    assert len(fatal) == 1 and fatal[0].startswith("gyrocal: error:") and "/dev/does-not-exist-42" in fatal[0]
+    assert err[-1] == fatal[0]
 
 
 # --- ranges: every numeric field, at start and at SIGHUP reload -----------------------------------
@@ -159,3 +161,42 @@ def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path
     assert eng.cfg.validation["block_s"] == 0.5 and eng.cfg.push["ack_timeout_s"] == 1.0
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "validation.block_s" in errors[0] and str(path) in errors[0]
+
+
+# --- CAN: python-can's own configuration fills what link.can leaves out ---------------------------------
+
+@pytest.fixture
+def no_can_env(tmp_path: Path, monkeypatch) -> Path:
+    for var in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # ~/.canrc is read from here
+    return tmp_path
+
+
+def test_can_link_takes_interface_and_channel_from_the_environment(no_can_env: Path, monkeypatch) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "gyro")
+    path = no_can_env / "c.yaml"
+    path.write_text("link: {kind: can}\n")
+    assert load_config(path).link["can"] == {"interface": "virtual", "channel": "gyro"}
+    path.write_text("link: {kind: can, can: {channel: other}}\n")  # the config file wins
+    assert load_config(path).link["can"] == {"interface": "virtual", "channel": "other"}
+
+
+def test_can_link_takes_its_defaults_from_canrc(no_can_env: Path) -> None:
+    (no_can_env / ".canrc").write_text("[default]\ninterface = socketcan\nchannel = vcan0\n"
+                                       "bitrate = 500000\n")
+    path = no_can_env / "c.yaml"
+    path.write_text("link: {kind: can}\n")
+    assert load_config(path).link["can"] == {"interface": "socketcan", "channel": "vcan0", "bitrate": 500000}
+
+
+def test_can_link_without_any_interface_names_the_field_and_python_cans_config(no_can_env: Path,
+                                                                                  monkeypatch) -> None:
+    path = no_can_env / "c.yaml"
+    path.write_text("link: {kind: can}\n")
+    with pytest.raises(ConfigError, match=r"field 'link.can' .*CAN_INTERFACE"):
+        load_config(path)
+    monkeypatch.setenv("CAN_INTERFACE", "no_such_bus")
+    with pytest.raises(ConfigError, match=r"c.yaml: field 'link.can'.*unknown interface"):
+        load_config(path)

@@ -28,7 +28,8 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "kind": ((str,), "serial", "write `serial` or `can`"),
         "url": ((str,), "auto", "write a device such as /dev/gyrocal-imu, a pyserial URL, or `auto`"),
         "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
-        "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}"),
+        "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}; "
+                "interface/channel left out come from python-can's config (CAN_INTERFACE, ~/.canrc)"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
     },
     "virtual_unit": {
@@ -242,9 +243,14 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     link, est, val = s["link"], s["estimator"], s["validation"]
     if link["kind"] not in ("serial", "can"):
         _fail(name, "link.kind", link["kind"], "write `serial` or `can`")
-    if link["kind"] == "can" and not link["can"] and not s["virtual_unit"]["enabled"]:
-        _fail(name, "link.can", link["can"], "give python-can Bus arguments, e.g. {interface: socketcan, "
-              "channel: can0}")
+    if link["kind"] == "can" and not s["virtual_unit"]["enabled"]:
+        from gyrocal.drivers.can_defaults import with_python_can_defaults
+
+        link["can"] = with_python_can_defaults(link["can"], f"{name}: field 'link.can'")
+        if not link["can"].get("interface"):
+            _fail(name, "link.can", link["can"], "give python-can Bus arguments, e.g. {interface: socketcan, "
+                  "channel: can0}, or configure python-can (CAN_INTERFACE/CAN_CHANNEL, /etc/can.conf, "
+                  "~/.canrc)")
     if link["url"] == "auto" and link["kind"] == "serial" and not s["virtual_unit"]["enabled"]:
         _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
     if est["method"] not in ("rls", "nlms", "lms"):
