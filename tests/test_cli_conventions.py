@@ -62,7 +62,7 @@ def test_no_priority_prefix_when_stderr_is_not_the_journal_stream(short_dir: Pat
 def test_log_lines_go_to_stderr_with_priorities_under_journald(capsys, monkeypatch) -> None:
     from gyrocal.daemon.logsetup import setup_logging
 
-    monkeypatch.setenv("JOURNAL_STREAM", "x")  # set but not checkable in-process: trusted
+    monkeypatch.setenv("JOURNAL_STREAM", "8:1234")  # capsys's stderr has no descriptor to check: trusted
     setup_logging("INFO")
     logging.getLogger("gyrocal.t").warning("disk nearly full")
     logging.getLogger("gyrocal.t").info("hello")

@@ -122,13 +122,14 @@ def main_status(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fmt(v: Any) -> str:
+def _fmt(v: Any, nested: bool = False) -> str:
     if isinstance(v, float):
         return f"{v:.6g}"
     if isinstance(v, dict):
-        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
+        text = ", ".join(f"{k}={_fmt(x, True)}" for k, x in v.items())
+        return f"({text})" if nested else text
     if isinstance(v, list):
-        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+        return "[" + ", ".join(_fmt(x, True) for x in v) + "]"
     return str(v)
 
 

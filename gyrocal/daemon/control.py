@@ -227,6 +227,9 @@ class ControlServer:
         self._stopping = threading.Event()
         self.requests = 0
         self.errors = 0
+        self.dropped = 0  # connections cut for a missed deadline, an idle spell or eviction
+        self._noted_at = -1e9
+        self._noted_count = 0
 
     def __enter__(self) -> ControlServer:
         self.start()
@@ -357,8 +360,8 @@ class ControlServer:
                 if not full:
                     self._clients[conn] = client
             if victim is not None:
-                log.warning("control socket: %d connections open; evicted the one idle for %.0f s",
-                            MAX_CLIENTS, time.monotonic() - victim.since)
+                self._note(f"{MAX_CLIENTS} connections open; evicted the one idle for "
+                           f"{time.monotonic() - victim.since:.0f} s")
                 with contextlib.suppress(OSError):
                     victim.conn.sendall(encode_line({"ok": False, "error": "connection evicted: too many "
                                                      "control connections, and this one was the most idle"}))
@@ -374,6 +377,18 @@ class ControlServer:
             with self._state_lock:
                 self._client_threads.add(t)
             t.start()
+
+    def _note(self, what: str) -> None:
+        """One WARNING per minute at most about dropped clients, with the count since the last one, so
+        that a client hammering the socket cannot flood the journal."""
+        with self._state_lock:
+            self.dropped += 1
+            self._noted_count += 1
+            now = time.monotonic()
+            if now - self._noted_at < 60.0:
+                return
+            count, self._noted_count, self._noted_at = self._noted_count, 0, now
+        log.warning("control socket: %s (%d connection(s) dropped in the last minute)", what, count)
 
     def _evict_for_new(self) -> _Client | None:
         """Under _state_lock: take the connection longest without a complete request out of the table
@@ -420,7 +435,7 @@ class ControlServer:
                         left, why = client.since + CLIENT_IDLE_S - now, "no request within"
                         limit = CLIENT_IDLE_S
                     if left <= 0:
-                        log.info("control socket: client dropped: %s %g s", why, limit)
+                        self._note(f"client dropped: {why} {limit:g} s")
                         with contextlib.suppress(OSError):
                             conn.sendall(encode_line({"ok": False, "error": f"{why} {limit:g} s; closing"}))
                         return

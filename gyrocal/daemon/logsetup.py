@@ -30,9 +30,12 @@ def journal_stream() -> bool:
         return False
     try:
         dev, ino = (int(x) for x in value.split(":"))
+    except ValueError:
+        return False  # not systemd's dev:ino
+    try:
         st = os.fstat(sys.stderr.fileno())
-    except (ValueError, OSError, AttributeError):
-        return True  # set but not checkable (stderr swapped in-process): trust the variable
+    except (OSError, ValueError, AttributeError):
+        return True  # stderr swapped in-process (no file descriptor): trust the variable
     return (st.st_dev, st.st_ino) == (dev, ino)
 
 
