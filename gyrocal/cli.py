@@ -43,7 +43,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 DEFAULT_LOG_LEVEL = {"run": "INFO"}  # every other command: WARNING
-EXTRAS = {"scipy": "analysis", "matplotlib": "analysis", "allantools": "analysis"}
+EXTRAS = {"scipy": "analysis", "matplotlib": "analysis"}
 """Top-level packages of the optional extras -> the extra that installs them."""
 
 

@@ -208,7 +208,7 @@ _BLOCK = """
 import importlib.abc, sys
 class Block(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
-        if name.split('.')[0] in ('scipy', 'matplotlib', 'allantools'):
+        if name.split('.')[0] in ('scipy', 'matplotlib', 'allantools', 'pytest', 'hypothesis'):
             raise ModuleNotFoundError(f"No module named {name!r}", name=name)
 sys.meta_path.insert(0, Block())
 from gyrocal.cli import main
