@@ -22,9 +22,10 @@ import importlib
 import logging
 import os
 import sys
+from typing import NoReturn
 
 from gyrocal import __version__
-from gyrocal.daemon.logsetup import priority_prefix, set_verbosity, setup_logging
+from gyrocal.daemon.logsetup import journal_stream, priority_prefix, set_verbosity, setup_logging
 from gyrocal.errors import GyrocalError
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -47,6 +48,14 @@ EXTRAS = {"scipy": "analysis", "matplotlib": "analysis"}
 """Top-level packages of the optional extras -> the extra that installs them."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the journald priority on its usage-error line (a bad ExecStart= is a fatal error)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{priority_prefix(logging.ERROR)}{self.prog}: error: {message}\n")
+
+
 def _add_verbosity(p: argparse.ArgumentParser, dest: str) -> None:
     """-v/--verbose and -q/--quiet, skipping any spelling the command already defines for itself."""
     taken = set(p._option_string_actions)
@@ -58,7 +67,7 @@ def _add_verbosity(p: argparse.ArgumentParser, dest: str) -> None:
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gyrocal", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="gyrocal", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"gyrocal {__version__}")
     _add_verbosity(parser, "_top")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -130,6 +139,14 @@ def main(argv: list[str] | None = None) -> int:
         return 141  # 128 + SIGPIPE, what a shell shows for a C tool stopped the same way
     except KeyboardInterrupt:
         return 130
+    except Exception:
+        if not journal_stream():
+            raise  # a terminal shows Python's traceback as usual
+        # under journald, a crash's traceback keeps its priority on every line (journalctl -p err)
+        if not any(getattr(h, "gyrocal", False) for h in logging.getLogger().handlers):
+            setup_logging("INFO")  # crashed before the command set logging up
+        logging.getLogger("gyrocal").critical("gyrocal %s crashed", command or "", exc_info=True)
+        return 1
 
 
 if __name__ == "__main__":
