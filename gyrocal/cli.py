@@ -32,8 +32,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("gyrocal.daemon.demo", "run the daemon against the virtual unit, push, check the drift"),
     "run": ("gyrocal.daemon.cli_run", "the calibrator daemon (systemd service)"),
     "sim": ("gyrocal.sim.cli_sim", "the virtual strapdown unit on a pty or a CAN bus"),
-    "fit": ("gyrocal.model.cli_fit", "fit drift coefficients to a log (Contract 3)"),
-    "analyze": ("gyrocal.analysis.cli_analyze", "what the simulation gets wrong (Contract 2)"),
+    "fit": ("gyrocal.model.cli_fit", "fit drift coefficients to a recorded log (docs/logformat.md)"),
+    "analyze": ("gyrocal.analysis.cli_analyze", "what the simulation gets wrong (docs/analysis.md)"),
     "convert": ("gyrocal.analysis.convert", "turn a shipped real dataset into the log format"),
     "status": ("gyrocal.daemon.cli_control", "state of a running daemon"),
     "recalibrate": ("gyrocal.daemon.cli_control", "start a new calibration session now"),
@@ -42,6 +42,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "install-files": ("gyrocal.install_files", "write the shipped config, systemd unit and udev rule to DIR"),
     "completion": ("gyrocal.completion", "print a shell completion script (bash)"),
 }
+
+DESCRIPTION = "gyrocal: on-line drift calibration of a strapdown gyro unit (daemon, simulator, analysis)."
+EPILOG = """\
+Results and JSON go to stdout, log lines and errors to stderr; -v/-q work before or after COMMAND.
+`gyrocal COMMAND --help` for one command. Bash completion: gyrocal completion bash > \\
+  ~/.local/share/bash-completion/completions/gyrocal. Daemon operation: docs/operations.md."""
 
 DEFAULT_LOG_LEVEL = {"run": "INFO"}  # every other command: WARNING
 EXTRAS = {"scipy": "analysis", "matplotlib": "analysis"}
@@ -67,7 +73,8 @@ def _add_verbosity(p: argparse.ArgumentParser, dest: str) -> None:
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
-    parser = _Parser(prog="gyrocal", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="gyrocal", description=DESCRIPTION, epilog=EPILOG,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"gyrocal {__version__}")
     _add_verbosity(parser, "_top")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
