@@ -243,7 +243,7 @@ def _fail(name: str, dotted: str, value: Any, fix: str) -> None:
 def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     link, est, val = s["link"], s["estimator"], s["validation"]
     if link["kind"] not in ("serial", "can", "mavlink"):
-        _fail(name, "link.kind", link["kind"], "write `serial`, `can` or `mavlink`")
+        _fail(name, "link.kind", link["kind"], "write `serial` or `can` (or `mavlink` for an autopilot)")
     if link["kind"] == "can" and not s["virtual_unit"]["enabled"]:
         from gyrocal.drivers.can_defaults import with_python_can_defaults
 
