@@ -157,6 +157,11 @@ def _nak_reason(code: int) -> int:
         return code
 
 
+MAX_COUNTED_GAP = 1 << 20
+"""A forward seq jump up to this many samples counts as lost samples; a farther one is an outlier or a
+restart (the engine tells which), not 17 minutes of 1 kHz samples lost."""
+
+
 class NonFiniteCoefficients(ProtocolError):
     """A coefficient set frame whose values are not all finite (counted as ``bad_values``)."""
 
@@ -284,7 +289,7 @@ class FrameDecoder:
                     if last is not None and seq != (last + 1) & 0xFFFFFFFF:
                         st.seq_gaps += 1
                         missing = (seq - last - 1) & 0xFFFFFFFF
-                        if missing < 0x80000000:  # else a repeat or step back: nothing lost
+                        if missing < MAX_COUNTED_GAP:  # else a repeat, a step back or an outlier's far seq
                             st.lost_samples += missing
                     self._last_seq = seq
                 elif typ == T_HELLO:
