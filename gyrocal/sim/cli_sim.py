@@ -3,7 +3,8 @@
 The first line on stdout (flushed) is where the daemon finds the unit: the pty slave path for
 ``--link pty``, or the bus arguments for ``--link can``. SIGUSR1 power-cycles the unit (a new
 session: HELLO, a new bias, seq from 0); SIGUSR2 toggles a silence (the unit stalls: nothing sent,
-nothing answered, its counter runs on); SIGTERM and SIGINT stop it cleanly.
+nothing answered, its counter runs on); SIGHUP replugs the cable (pty: a new pty pair behind the same
+``--pty-link``, the unit keeps running); SIGTERM and SIGINT stop it cleanly.
 
 Examples::
 
@@ -184,6 +185,7 @@ def _install_signals(runner: Runner) -> None:
     if hasattr(signal, "SIGUSR1"):
         signal.signal(signal.SIGUSR1, cycle)
         signal.signal(signal.SIGUSR2, lambda signum, frame: runner.toggle_silence())
+        signal.signal(signal.SIGHUP, lambda signum, frame: runner.request_replug())
 
 
 if __name__ == "__main__":

@@ -82,6 +82,8 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         self._cycle_requested = False
         self._stop_requested = False
         self._silence_toggled = False
+        self._replug_requested = False
+        self.replugs = 0
         self._started = time.monotonic()
         self._next_outlier = 0
         self.outliers_sent = 0
@@ -95,6 +97,9 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
 
     def request_stop(self) -> None:
         self._stop_requested = True
+
+    def request_replug(self) -> None:
+        self._replug_requested = True
 
     def toggle_silence(self) -> None:
         self._silence_toggled = not self._silence_toggled
@@ -119,6 +124,12 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
                     self._cycle_requested = False
                     self._power_on()
                     continue
+                if self._replug_requested and hasattr(self.transport, "reopen"):
+                    self._replug_requested = False
+                    self.transport.reopen()
+                    self.replugs += 1
+                    log.info("cable replugged: new port %s", self.transport.describe())
+                    self.write_status()
                 if self.total_samples and self.unit.samples_sent >= self.total_samples:
                     self._linger()
                     break
@@ -206,7 +217,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         doc.update(running=running, link=self.transport.kind, address=self.transport.describe(),
                    transport=dict(self.transport.stats), backlog_bytes=self.transport.backlog_bytes,
                    requests=self.requests, replies_sent=self.replies_sent, pid=os.getpid(),
-                   outliers_sent=self.outliers_sent, silent=self.silent(time.monotonic()),
+                   outliers_sent=self.outliers_sent, replugs=self.replugs, silent=self.silent(time.monotonic()),
                    wall_time=time.time())
         if self.recorder is not None:
             doc.update(record=str(self.recorder.path), recorded_rows=self.recorder.rows)

@@ -73,6 +73,23 @@ class PtyTransport:
     def describe(self) -> str:
         return self.path
 
+    def reopen(self) -> None:
+        """A cable replug: this pty pair goes away and a new one takes its place (and the symlink).
+        The unit keeps running; the host sees its port vanish and come back."""
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        if self.link_path:
+            _replace_symlink(Path(self.link_path), self.path)
+        self._backlog.clear()
+        self._decoder.reset()
+
     def send(self, msgs: Iterable[Any]) -> None:
         """Queue and write the frames of ``msgs``; never blocks."""
         out = bytearray()
