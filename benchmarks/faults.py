@@ -119,7 +119,21 @@ class Rig:
         err = (self.tmp / "sim.stderr").open("a")
         self.sim = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
 
+    def unit_back(self, timeout_s: float = 20.0) -> float:
+        """Wait until the restarted unit is there again (its pty exists, or it wrote its status on
+        CAN); returns that moment (monotonic s): recovery is timed from it, not from process spawn."""
+        end = time.monotonic() + timeout_s
+        pid = self.sim.pid if self.sim is not None else None
+        while time.monotonic() < end:
+            if self.link == "pty" and self.pty.exists():
+                return time.monotonic()
+            if self.link == "can" and self.unit().get("pid") == pid:
+                return time.monotonic()
+            time.sleep(0.01)
+        return time.monotonic()
+
     def kill_sim(self) -> None:
+        self.pty.unlink(missing_ok=True)
         if self.sim is not None and self.sim.poll() is None:
             self.sim.kill()
             self.sim.wait(10)
@@ -235,8 +249,8 @@ def sc_start_without_unit(rig: Rig) -> Result:
     time.sleep(3.0)
     st = rig.status()
     res.notes.append(f"before: {st.get('state')}: {st.get('reason')}")
-    t0 = time.monotonic()
     rig.start_sim()
+    t0 = rig.unit_back()
     ok = rig.wait(rig.healthy, 30)
     res.recover_s = round(time.monotonic() - t0, 2) if ok else None
     res.lost = "nothing"
@@ -257,8 +271,8 @@ def sc_unplug_mid_push(rig: Rig) -> Result:
     alive_while_gone = rig.daemon_up()
     st = rig.status()
     res.notes.append(f"while gone: {st.get('state')}: {st.get('reason')}")
-    t0 = time.monotonic()
     rig.start_sim()
+    t0 = rig.unit_back()
     ok = rig.wait(rig.healthy, 30)
     res.recover_s = round(time.monotonic() - t0, 2) if ok else None
     acked = rig.wait(rig.acked, PUSH_S)

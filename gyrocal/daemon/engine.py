@@ -341,6 +341,9 @@ class Engine:
                 self.session.relink(now)
 
     def _start_session(self, hello: Hello, now: float) -> None:
+        old = self.session
+        if old is not None:
+            old.close(f"a new session started (boot {hello.boot_count})", now)
         prior = self.store.latest(hello.serial, acked_only=True)
         learner = make_learner(self.cfg, prior)
         rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
@@ -349,6 +352,8 @@ class Engine:
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version)
         self.sessions_started += 1
+        if old is not None:  # push results the store could not take yet: carried over, not lost
+            self.session.unrecorded.extend(old.unrecorded)
         if prior is not None:
             log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
 

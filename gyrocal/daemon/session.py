@@ -113,7 +113,7 @@ class Session:
     READ_WARN_AFTER = 3
     RETRY_BACKOFF_S = 5.0
     RETRY_BACKOFF_MAX_S = 300.0
-    STORE_RETRY_S = 10.0
+    STORE_RETRY_S = 5.0
 
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
@@ -178,6 +178,18 @@ class Session:
             return False
         self._link_warned = False
         return True
+
+    def close(self, reason: str, now: float) -> None:
+        """The session ends (a new switch-on, a recalibration): a push still under way is recorded as
+        'abandoned' with the reason; the next read-back decides whether the unit applied it."""
+        if self.push is not None:
+            version = self.push.write.version
+            self.push = None
+            self.last_push = {"version": version, "status": "abandoned", "utc": utc_now(),
+                              "reasons": [f"push cut short: {reason}; the unit's read-back decides"]}
+            log.warning("unit %s: push of v%d abandoned: %s", self.hello.serial, version, reason)
+            self._store_push(version, dict(self.last_push), now)
+        self._retry = None
 
     def relink(self, now: float) -> None:
         """The link came back: the unit may have changed its set meanwhile; read it again."""
