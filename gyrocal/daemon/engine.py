@@ -501,12 +501,13 @@ class Engine:
             status = {"state": "WAIT_HELLO", "reason": waiting}
         else:
             status = self.session.status()
-        silent = connected and (age is None or age > SILENT_AFTER_S) and (
-            self._last_sample_at is not None or now - self.started > SILENT_AFTER_S)
-        if not connected:
+        silent = connected and age is not None and age > SILENT_AFTER_S
+        if not connected or (age is None and self.session is None and not link_stats.get("frames")):
             status["session_state"] = status["state"]
             status["state"] = "WAIT_UNIT"
-            status["reason"] = f"waiting for the unit: link to {link_stats.get('target', '?')} is down"
+            status["reason"] = (f"waiting for the unit: link to {link_stats.get('target', '?')} is down"
+                                if not connected else
+                                f"waiting for the unit: {link_stats.get('target', '?')} is open, nothing heard yet")
         elif silent:
             status["session_state"] = status["state"]
             status["state"] = "UNIT_SILENT"
