@@ -105,7 +105,8 @@ class Rig:
         path = self.tmp / "gyrocal.yaml"
         path.write_text(yaml.safe_dump(cfg))
         log = (self.tmp / "daemon.log").open("a")
-        self.daemon = subprocess.Popen([*PY, "run", "--config", str(path)], stdout=log, stderr=subprocess.STDOUT)
+        self.daemon = subprocess.Popen([*PY, "run", "--config", str(path)], stdout=log,
+                                       stderr=subprocess.STDOUT)
         self.daemon_starts += 1
 
     def start_sim(self, *faults: str) -> None:
@@ -244,7 +245,8 @@ def _finish(rig: Rig, res: Result, *, need_agree: bool = True) -> Result:
 
 
 def sc_start_without_unit(rig: Rig) -> Result:
-    res = Result("start_without_unit", rig.link, "daemon started 3 s before the unit exists; then the unit appears")
+    res = Result("start_without_unit", rig.link,
+                 "daemon started 3 s before the unit exists; then the unit appears")
     rig.start_daemon()
     time.sleep(3.0)
     st = rig.status()
@@ -276,13 +278,14 @@ def sc_unplug_mid_push(rig: Rig) -> Result:
     ok = rig.wait(rig.healthy, 30)
     res.recover_s = round(time.monotonic() - t0, 2) if ok else None
     acked = rig.wait(rig.acked, PUSH_S)
-    res.lost = f"push attempt of the first set ({(st.get('last_push') or {}).get('status', '?')}); the unit's session"
+    res.lost = "the first push (the unit was gone); the unit's session (it restarted)"
     res.ok = alive_while_gone and bool(ok) and bool(acked)
     return _finish(rig, res)
 
 
 def sc_nan_readback(rig: Rig) -> Result:
-    res = Result("nan_readback", rig.link, "the unit answers its first 3 COEFF_READs with NaN (valid frame CRC)")
+    res = Result("nan_readback", rig.link,
+                 "the unit answers its first 3 COEFF_READs with NaN (valid frame CRC)")
     rig.start_daemon()
     rig.start_sim("--nan-readback", "3")
     learning = rig.wait(lambda: rig.status().get("trained_samples", 0) > 0, 60)
@@ -296,7 +299,8 @@ def sc_nan_readback(rig: Rig) -> Result:
 
 def sc_store_unwritable(rig: Rig) -> Result:
     res = Result("store_unwritable", rig.link,
-                 "the unit's store directory becomes unwritable (ENOTDIR) before the first push; fixed 10 s later")
+                 "the unit's store directory becomes unwritable (ENOTDIR) before the first push; "
+                 "fixed 2 s after the daemon said so")
     rig.start_daemon()
     rig.start_sim()
     if not rig.wait(rig.healthy, 30):
@@ -354,7 +358,8 @@ def sc_ack_lost(rig: Rig) -> Result:
     ended = rig.wait(lambda: (rig.status().get("last_push") or {}).get("status") not in (None,), PUSH_S)
     agree = rig.wait(lambda: rig.agree()[0] and (rig.status().get("unit_set") or {}).get("agree"), 30)
     st = rig.status()
-    res.lost = f"the ack of v{(st.get('last_push') or {}).get('version')} ({(st.get('last_push') or {}).get('status')})"
+    last = st.get("last_push") or {}
+    res.lost = f"the ack of v{last.get('version')} (push ended {last.get('status')!r})"
     res.ok = bool(ended) and bool(agree)
     res.notes.append(f"daemon view: {st.get('unit_set')}")
     return _finish(rig, res)
@@ -368,7 +373,7 @@ def sc_cycle_after_ack(rig: Rig) -> Result:
                       and rig.status().get("applied") is not None, PUSH_S)
     agree = rig.wait(lambda: rig.agree()[0], 30)
     st = rig.status()
-    res.lost = f"the read-back of v{(st.get('last_push') or {}).get('version')}; sessions {st.get('sessions')}"
+    res.lost = f"the read-back of the pushed set; sessions {st.get('sessions')} for 2 switch-ons"
     res.ok = bool(second) and bool(agree) and st.get("sessions") == 2
     return _finish(rig, res)
 
@@ -468,10 +473,14 @@ def sc_power_cycles(rig: Rig) -> Result:
         return _finish(rig, res)
     times = []
     for _ in range(3):
+        boot = (rig.unit().get("boot_count") or 0) + 1
         rig.signal_sim(signal.SIGUSR1)
         t0 = time.monotonic()
-        boot = (rig.unit().get("boot_count") or 0) + 1
-        ok = rig.wait(lambda b=boot: rig.healthy() and (rig.status().get("unit") or {}).get("boot_count") == b, 20)
+
+        def on_new_boot(b: int = boot) -> bool:
+            return rig.healthy() and (rig.status().get("unit") or {}).get("boot_count") == b
+
+        ok = rig.wait(on_new_boot, 20)
         times.append(time.monotonic() - t0 if ok else float("nan"))
         time.sleep(3.0)
     st = rig.status()
@@ -551,7 +560,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", metavar="OUT.json")
     p.add_argument("--keep", action="store_true", help="keep every scenario's directory")
     a = p.parse_args(argv)
-    names = a.only.split(",") if a.only else [n for n, (_, _, quick) in SCENARIOS.items() if quick or not a.quick]
+    names = (a.only.split(",") if a.only
+             else [n for n, (_, _, quick) in SCENARIOS.items() if quick or not a.quick])
     results = []
     for name in names:
         links = ("pty",) if a.quick or a.skip_can else SCENARIOS[name][1]

@@ -142,7 +142,8 @@ class Engine:
         self.control.start()
         log.info("control socket %s; state directory %s", self.cfg.control_socket, self.cfg.state_dir)
         self.notifier.ready()
-        self.notifier.status("waiting for the unit" if not self.link.connected else "waiting for the unit's HELLO")
+        self.notifier.status("waiting for the unit" if not self.link.connected
+                             else "waiting for the unit's HELLO")
 
     def _tidy_store(self) -> None:
         """At start (the only writer now): remove temporaries of interrupted writes, close abandoned
@@ -310,7 +311,8 @@ class Engine:
             if (s is not None and s.hello.serial == msg.serial and self._seq_session_at is not None
                     and now - self._seq_session_at < ADOPT_WINDOW_S):
                 # the sample sequence already showed this restart and started its session
-                log.info("HELLO from unit %d (boot %d) confirms the restart seen in the samples: same session",
+                log.info("HELLO from unit %d (boot %d) confirms the restart seen in the samples: "
+                         "same session",
                          msg.serial, msg.boot_count)
                 s.hello = msg
                 self._seq_session_at = None
@@ -507,7 +509,8 @@ class Engine:
             status["state"] = "WAIT_UNIT"
             status["reason"] = (f"waiting for the unit: link to {link_stats.get('target', '?')} is down"
                                 if not connected else
-                                f"waiting for the unit: {link_stats.get('target', '?')} is open, nothing heard yet")
+                                f"waiting for the unit: {link_stats.get('target', '?')} is open, "
+                                "nothing heard yet")
         elif silent:
             status["session_state"] = status["state"]
             status["state"] = "UNIT_SILENT"

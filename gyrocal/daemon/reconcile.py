@@ -73,7 +73,8 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
     rec = store.get(serial, version)
     if rec is None:
         return Agreement(version, crc, None, False,
-                         f"the unit holds v{version}, which this store does not know (written by another host?)")
+                         f"the unit holds v{version}, which this store does not know "
+                         "(written by another host?)")
     status = str(rec.push.get("status"))
     if crc is None or record_crc(rec) != crc:
         return Agreement(version, crc, status, False,
@@ -83,8 +84,9 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
     history = list(rec.push.get("history") or [])
     history.append({"status": status, "reasons": rec.push.get("reasons"), "until_utc": utc_now()})
     try:
-        store.update_push(serial, version, {"status": "applied_ack_lost", "acked_crc": crc, "readback_ok": True,
-                                            "history": history, "reconciled_utc": utc_now()})
+        store.update_push(serial, version, {"status": "applied_ack_lost", "acked_crc": crc,
+                                            "readback_ok": True, "history": history,
+                                            "reconciled_utc": utc_now()})
     except Exception as err:  # a full disk: say so, retry at the next read-back
         return Agreement(version, crc, status, False,
                          f"the unit holds v{version} (stored as {status!r}); store not updated: {err}")
@@ -109,7 +111,8 @@ def close_abandoned(store: CalibrationStore) -> int:
                                 "whether it was applied"]})
                 closed += 1
             except Exception as err:  # a read-only store: it stays 'pending', which says as much
-                log.warning("calibration store: cannot close pending v%d of unit %d: %s", rec.version, serial, err)
+                log.warning("calibration store: cannot close pending v%d of unit %d: %s",
+                            rec.version, serial, err)
     if closed:
         log.info("calibration store: %d push(es) left pending by an earlier run closed as abandoned", closed)
     return closed

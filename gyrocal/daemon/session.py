@@ -201,7 +201,8 @@ class Session:
     def request_read(self, now: float) -> None:
         """Ask for the unit's set (COEFF_READ), with a back-off while it does not answer."""
         self._read_asks += 1
-        delay = min(self.cfg.push["ack_timeout_s"] * 2.0 ** max(0, self._read_asks - 1), self.READ_BACKOFF_MAX_S)
+        delay = min(self.cfg.push["ack_timeout_s"] * 2.0 ** max(0, self._read_asks - 1),
+                    self.READ_BACKOFF_MAX_S)
         self._read_deadline = now + max(delay, 0.05)
         self._send(CoeffRead())
 
@@ -323,7 +324,7 @@ class Session:
             return
         if self._retry is not None and now >= self._retry["at"]:
             r, self._retry = self._retry, None
-            log.info("unit %s: pushing v%d again (attempt round %d)", self.hello.serial, r["version"], r["round"])
+            log.info("unit %s: pushing v%d again (round %d)", self.hello.serial, r["version"], r["round"])
             self.start_push(r["version"], r["names"], r["coeffs"], now, retry_round=r["round"])
             return
         if now < self._next_check:
@@ -402,7 +403,8 @@ class Session:
             self.store_error = str(err)
             self._store_retry_at = now + self.STORE_RETRY_S
             self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
-            self.reason = f"store unavailable: {err}; validated set not pushed, retrying in {self.STORE_RETRY_S:g} s"
+            self.reason = (f"store unavailable: {err}; validated set not pushed, "
+                           f"retrying in {self.STORE_RETRY_S:g} s")
             log.error("unit %s: %s", self.hello.serial, self.reason)
             return
         self.store_error = None
@@ -457,12 +459,15 @@ class Session:
         """Record a push result; a store that cannot take it keeps it in memory for later."""
         try:
             self.store.update_push(self.hello.serial, version, push)
+        except KeyError as err:  # no such record (a push of a set that was never stored): nothing to update
+            log.warning("store: push result of v%d not recorded: %s", version, err)
         except Exception as err:  # the store must never take the session down with it
+            if self.store_error is None:
+                log.error("store unavailable: cannot record the push result of v%d (%s); kept in memory, "
+                          "retried every %g s", version, err, self.STORE_RETRY_S)
             self.store_error = str(err)
             self.unrecorded.append((version, push))
             self._store_retry_at = now + self.STORE_RETRY_S
-            log.error("store unavailable: cannot record the push result of v%d (%s); kept in memory",
-                      version, err)
 
     def _flush_unrecorded(self, now: float) -> None:
         pending, self.unrecorded = self.unrecorded, []
@@ -542,7 +547,8 @@ class Session:
             "unit_set": self.agreement,
             "faults": {"refused_reports": self.refused_reports, "send_failures": self.send_failures,
                        "coeff_read_asks": self._read_asks,
-                       "store": "ok" if self.store_error is None else f"store unavailable: {self.store_error}",
+                       "store": ("ok" if self.store_error is None
+                                 else f"store unavailable: {self.store_error}"),
                        "unrecorded_push_results": len(self.unrecorded),
                        "retry": None if self._retry is None else {"version": self._retry["version"],
                                                                    "round": self._retry["round"]}},

@@ -219,7 +219,8 @@ class Link(ABC):
 
     def _emit(self, name: str, detail: str) -> None:
         # every back-off round would be a line: the listener (the engine) logs state changes
-        log.log(logging.DEBUG if name == "reconnecting" else logging.INFO, "%s link %s: %s", self.kind, name, detail)
+        level = logging.DEBUG if name == "reconnecting" else logging.INFO
+        log.log(level, "%s link %s: %s", self.kind, name, detail)
         if self.on_event is None:
             return
         try:

@@ -183,7 +183,8 @@ def decode_payload(typ: int, payload: bytes | memoryview) -> object:
                 # a CRC-valid frame can still carry NaN/Inf (a unit's bug, a fuzzer): no such set
                 # exists on the wire (coeff_set_bytes refuses to encode it), so drop and count it,
                 # as the CAN decoder does; the host reads again after its timeout
-                raise NonFiniteCoefficients(f"frame type 0x{typ:02X}: coefficient set v{version} holds NaN or Inf")
+                raise NonFiniteCoefficients(
+                    f"frame type 0x{typ:02X}: coefficient set v{version} holds NaN or Inf")
             return (CoeffWrite if typ == T_COEFF_WRITE else CoeffReport)(version, tid, rows)
         if typ == T_COEFF_ACK:
             return CoeffAck(*ACK_PAYLOAD.unpack(payload))

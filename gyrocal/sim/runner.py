@@ -217,7 +217,8 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         doc.update(running=running, link=self.transport.kind, address=self.transport.describe(),
                    transport=dict(self.transport.stats), backlog_bytes=self.transport.backlog_bytes,
                    requests=self.requests, replies_sent=self.replies_sent, pid=os.getpid(),
-                   outliers_sent=self.outliers_sent, replugs=self.replugs, silent=self.silent(time.monotonic()),
+                   outliers_sent=self.outliers_sent, replugs=self.replugs,
+                   silent=self.silent(time.monotonic()),
                    wall_time=time.time())
         if self.recorder is not None:
             doc.update(record=str(self.recorder.path), recorded_rows=self.recorder.rows)

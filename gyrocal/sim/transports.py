@@ -227,7 +227,8 @@ class CanTransport:
         payload = nan_report_payload(m)
         words = struct.unpack(f"<{(len(payload) - 7) // 4}I", payload[7:])
         c = self._codec
-        frames = [c._frame("REPORT_BEGIN", {"CAL_VERSION": m.version, "TERMS_ID": m.terms_id, "N_TERMS": m.n_terms})]
+        frames = [c._frame("REPORT_BEGIN",
+                           {"CAL_VERSION": m.version, "TERMS_ID": m.terms_id, "N_TERMS": m.n_terms})]
         frames += [c._frame("REPORT_DATA", {"CHUNK": k, "CAL_VERSION_LO": m.version & 0xFFFF, "WORD": w})
                    for k, w in enumerate(words)]
         frames.append(c._frame("REPORT_END", {"CAL_VERSION": m.version, "CRC": binascii.crc32(payload)}))

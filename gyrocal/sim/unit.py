@@ -209,8 +209,9 @@ class VirtualUnit:
                 return []
             if self.faults.nan_readback > 0:
                 self.faults.nan_readback -= 1
-                return [NanReport(0 if a is None else a.version, termsets.SEED000_ID if a is None else a.terms_id,
-                                  10 if a is None else len(a.names))]
+                if a is None:
+                    return [NanReport(0, termsets.SEED000_ID, 10)]
+                return [NanReport(a.version, a.terms_id, len(a.names))]
             if a is None:
                 return [CoeffReport(version=0, terms_id=0, coeffs_dps=((), (), ()))]
             return [CoeffReport(version=a.version, terms_id=a.terms_id, coeffs_dps=a.wire_coeffs())]
