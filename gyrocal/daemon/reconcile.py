@@ -57,9 +57,9 @@ class Agreement:
     note: str
 
     def as_dict(self) -> dict[str, Any]:
-        return {"unit_version": self.unit_version,
+        return {"agree": self.agree, "note": self.note, "unit_version": self.unit_version,
                 "unit_crc": None if self.unit_crc is None else f"0x{self.unit_crc:08x}",
-                "store_status": self.store_status, "agree": self.agree, "note": self.note}
+                "store_status": self.store_status}
 
 
 def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | None) -> Agreement:
