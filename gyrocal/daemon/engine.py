@@ -51,7 +51,7 @@ from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session
 from gyrocal.daemon.stillness import StillConfig, StillDetector
-from gyrocal.daemon.store import CalibrationStore
+from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
 
@@ -408,6 +408,18 @@ class Engine(CommandsMixin):
         return {"p50": float(p50), "p99": float(p99), "max": float(v.max()), "n": int(v.size)}
 
     # -- status -------------------------------------------------------------------------------
+    def _store_view(self, serial: int) -> dict[str, Any]:
+        """What the store says about this unit: its newest set the unit verifiably held, and pushes
+        that have not ended (beside the session's ``unit_set``: what the unit holds, and whether the
+        two agree)."""
+        try:
+            recs = self.store.history(serial)
+        except Exception as err:
+            return {"error": str(err)}
+        applied = [r.version for r in recs if r.push.get("status") in APPLIED_STATUSES]
+        return {"versions": len(recs), "latest_applied": applied[-1] if applied else None,
+                "pending": [r.version for r in recs if r.push.get("status") == "pending"]}
+
     def _publish(self, now: float) -> None:
         link_stats = self.link.stats() if self.link is not None else {}
         ring = {"pushed": self.ring.pushed, "popped": self.ring.popped, "lost": self.ring.lost}
@@ -420,6 +432,7 @@ class Engine(CommandsMixin):
             status = {"state": "WAIT_HELLO", "reason": waiting}
         else:
             status = self.session.status()
+            status["store_view"] = self._store_view(self.session.hello.serial)
         silent = connected and age is not None and age > SILENT_AFTER_S
         if not connected or (age is None and self.session is None and not link_stats.get("frames")):
             status["session_state"] = status["state"]
