@@ -240,6 +240,9 @@ class Session:
         self.applied = applied
         self._read_asks = 0
         self._reconcile(msg)
+        if self._retry is not None and self.agreement.get("agree") and msg.version == self._retry["version"]:
+            log.info("unit %s already holds v%d: no retry needed", self.hello.serial, msg.version)
+            self._retry = None
 
     def _reconcile(self, msg: CoeffReport) -> None:
         try:
@@ -445,7 +448,12 @@ class Session:
         if why is not None:
             log.error("unit %s: push of v%d refused: %s", self.hello.serial, version, why)
             self.last_push = {"version": version, "status": "refused", "reasons": [why], "utc": utc_now()}
-            self._store_push(version, dict(self.last_push), now)
+            try:  # only a record that was never sent is marked: an acked one keeps its history true
+                rec = self.store.get(self.hello.serial, version)
+            except Exception:
+                rec = None
+            if rec is not None and rec.push.get("status") == "pending":
+                self._store_push(version, dict(self.last_push), now)
             return why
         self._pending = (list(names), coeffs)
         self._retry, self._retry_round = None, retry_round  # this push supersedes a pending retry
