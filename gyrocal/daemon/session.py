@@ -56,11 +56,11 @@ import numpy as np
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
-from gyrocal.daemon.reconcile import reconcile
+from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
-from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello, coeff_set_crc
+from gyrocal.protocol.messages import CoeffReport, CoeffWrite, Hello
 from gyrocal.protocol.termsets import names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
@@ -105,15 +105,10 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
     return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
 
 
-class Session:
+class Session(RecoveryMixin):
     """The state machine of one switch-on. See the module docstring."""
 
     CHECK_EVERY_S = 0.25
-    READ_BACKOFF_MAX_S = 30.0
-    READ_WARN_AFTER = 3
-    RETRY_BACKOFF_S = 5.0
-    RETRY_BACKOFF_MAX_S = 300.0
-    STORE_RETRY_S = 5.0
 
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
@@ -165,47 +160,6 @@ class Session:
         self.request_read(now)
 
     # -- messages from the unit -------------------------------------------------------------
-    def _send(self, msg: Any) -> bool:
-        """Send to the unit; a link failure is counted and logged once per outage, never raised."""
-        try:
-            self.send(msg)
-        except Exception as err:  # LinkError / OSError: unplugged, or a write that failed
-            self.send_failures += 1
-            if not self._link_warned:
-                log.warning("unit %s: %s not sent (%s); the session waits for the link",
-                            self.hello.serial, type(msg).__name__, err)
-                self._link_warned = True
-            return False
-        self._link_warned = False
-        return True
-
-    def close(self, reason: str, now: float) -> None:
-        """The session ends (a new switch-on, a recalibration): a push still under way is recorded as
-        'abandoned' with the reason; the next read-back decides whether the unit applied it."""
-        if self.push is not None:
-            version = self.push.write.version
-            self.push = None
-            self.last_push = {"version": version, "status": "abandoned", "utc": utc_now(),
-                              "reasons": [f"push cut short: {reason}; the unit's read-back decides"]}
-            log.warning("unit %s: push of v%d abandoned: %s", self.hello.serial, version, reason)
-            self._store_push(version, dict(self.last_push), now)
-        self._retry = None
-
-    def relink(self, now: float) -> None:
-        """The link came back: the unit may have changed its set meanwhile; read it again."""
-        self._read_asks = 0
-        if self.push is None:
-            self.applied, self._switch = None, None
-        self.request_read(now)
-
-    def request_read(self, now: float) -> None:
-        """Ask for the unit's set (COEFF_READ), with a back-off while it does not answer."""
-        self._read_asks += 1
-        delay = min(self.cfg.push["ack_timeout_s"] * 2.0 ** max(0, self._read_asks - 1),
-                    self.READ_BACKOFF_MAX_S)
-        self._read_deadline = now + max(delay, 0.05)
-        self._send(CoeffRead())
-
     def on_message(self, msg: Any, now: float, last_seq: int | None = None) -> None:
         """A unit message; ``last_seq`` is the seq of the sample just before it on the wire."""
         if self.push is not None:
@@ -243,13 +197,6 @@ class Session:
         if self._retry is not None and self.agreement.get("agree") and msg.version == self._retry["version"]:
             log.info("unit %s already holds v%d: no retry needed", self.hello.serial, msg.version)
             self._retry = None
-
-    def _reconcile(self, msg: CoeffReport) -> None:
-        try:
-            crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps) if msg.version else None
-            self.agreement = reconcile(self.store, self.hello.serial, msg.version, crc).as_dict()
-        except Exception as err:  # the store is advisory here: learning goes on
-            self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
 
     # -- samples ------------------------------------------------------------------------------
     def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
@@ -462,28 +409,6 @@ class Session:
         self.push = PushTransaction(write, self._send, now, self.cfg.push["ack_timeout_s"],
                                     self.cfg.push["retries"])
         return None
-
-    def _store_push(self, version: int, push: dict[str, Any], now: float) -> None:
-        """Record a push result; a store that cannot take it keeps it in memory for later."""
-        try:
-            self.store.update_push(self.hello.serial, version, push)
-        except KeyError as err:  # no such record (a push of a set that was never stored): nothing to update
-            log.warning("store: push result of v%d not recorded: %s", version, err)
-        except Exception as err:  # the store must never take the session down with it
-            if self.store_error is None:
-                log.error("store unavailable: cannot record the push result of v%d (%s); kept in memory, "
-                          "retried every %g s", version, err, self.STORE_RETRY_S)
-            self.store_error = str(err)
-            self.unrecorded.append((version, push))
-            self._store_retry_at = now + self.STORE_RETRY_S
-
-    def _flush_unrecorded(self, now: float) -> None:
-        pending, self.unrecorded = self.unrecorded, []
-        for version, push in pending:
-            self._store_push(version, push, now)
-        if not self.unrecorded:
-            self.store_error = None
-            log.info("store available again: %d push result(s) recorded", len(pending))
 
     def _after_push(self, now: float) -> None:
         if self.push is None or not self.push.finished:
