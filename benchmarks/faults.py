@@ -518,7 +518,7 @@ SCENARIOS: dict[str, tuple[Callable[[Rig], Result], tuple[str, ...], bool]] = {
     "seq_outliers": (sc_seq_outliers, ("pty",), False),
     "unit_silent": (sc_silence, ("pty", "can"), True),
     "pty_replug": (sc_replug, ("pty",), True),
-    "power_cycles": (sc_power_cycles, ("pty", "can"), False),
+    "power_cycles": (sc_power_cycles, ("pty", "can"), True),
     "no_coeff_read": (sc_no_coeff_read, ("pty",), True),
 }
 

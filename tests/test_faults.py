@@ -198,7 +198,8 @@ def _campaign() -> Any:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["start_without_unit", "refused_pushes", "unit_silent", "pty_replug"])
+@pytest.mark.parametrize("name", ["start_without_unit", "refused_pushes", "unit_silent", "pty_replug",
+                                  "power_cycles"])
 def test_fault_campaign_fast_scenarios_on_a_pty(name: str) -> None:
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     res = _campaign().run_one(name, "pty")
