@@ -278,8 +278,9 @@ def sc_unplug_mid_push(rig: Rig) -> Result:
     ok = rig.wait(rig.healthy, 30)
     res.recover_s = round(time.monotonic() - t0, 2) if ok else None
     acked = rig.wait(rig.acked, PUSH_S)
-    res.lost = "the first push (the unit was gone); the unit's session (it restarted)"
-    res.ok = alive_while_gone and bool(ok) and bool(acked)
+    sessions = rig.status().get("sessions")
+    res.lost = f"the first push (the unit was gone); sessions {sessions} for 2 switch-ons"
+    res.ok = alive_while_gone and bool(ok) and bool(acked) and sessions == 2
     return _finish(rig, res)
 
 
