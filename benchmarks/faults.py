@@ -505,6 +505,36 @@ def sc_no_coeff_read(rig: Rig) -> Result:
     return _finish(rig, res)
 
 
+def sc_flapping_cable(rig: Rig) -> Result:
+    res = Result("flapping_cable", rig.link, "the cable is replugged 5 times, 1 s apart (a loose connector)")
+    rig.start_daemon()
+    rig.start_sim()
+    if not rig.wait(rig.healthy, 30):
+        return _finish(rig, res)
+    before = rig.status().get("sessions")
+    for _ in range(5):
+        rig.signal_sim(signal.SIGHUP)
+        time.sleep(1.0)
+    t0 = time.monotonic()
+    ok = rig.wait(rig.healthy, 20)
+    res.recover_s = round(time.monotonic() - t0, 2) if ok else None
+    st = rig.status()
+    res.lost = f"samples while unplugged; sessions {before} -> {st.get('sessions')}"
+    res.ok = bool(ok) and st.get("sessions") == before
+    return _finish(rig, res)
+
+
+def sc_garbage_line(rig: Rig) -> Result:
+    res = Result("garbage_line", rig.link, "random garbage bursts before 5 % of the frames, through a push")
+    rig.start_daemon()
+    rig.start_sim("--garbage-rate", "0.05")
+    acked = rig.wait(rig.acked, PUSH_S)
+    errs = (rig.status().get("link") or {}).get("errors") or {}
+    res.lost = f"{errs.get('garbage_bytes', 0)} garbage bytes skipped, {errs.get('crc_errors', 0)} CRC errors"
+    res.ok = bool(acked)
+    return _finish(rig, res)
+
+
 SCENARIOS: dict[str, tuple[Callable[[Rig], Result], tuple[str, ...], bool]] = {
     # name: (function, links, quick)
     "start_without_unit": (sc_start_without_unit, ("pty", "can"), True),
@@ -521,6 +551,8 @@ SCENARIOS: dict[str, tuple[Callable[[Rig], Result], tuple[str, ...], bool]] = {
     "pty_replug": (sc_replug, ("pty",), True),
     "power_cycles": (sc_power_cycles, ("pty", "can"), True),
     "no_coeff_read": (sc_no_coeff_read, ("pty",), True),
+    "flapping_cable": (sc_flapping_cable, ("pty",), True),
+    "garbage_line": (sc_garbage_line, ("pty",), False),
 }
 
 
