@@ -171,7 +171,9 @@ class PushTransaction:
             self.send_failures += 1
             reason = f"{type(msg).__name__} not sent: {err}"
             self.reasons.append(reason)
-            log.warning("push v%d: %s", self.write.version, reason)
+            # a write's failure is logged once, by _retry_or_fail; a read's here
+            log.log(logging.DEBUG if isinstance(msg, CoeffWrite) else logging.WARNING,
+                    "push v%d: %s", self.write.version, reason)
             return False
         return True
 
@@ -181,8 +183,8 @@ class PushTransaction:
         self._deadline = now + self.timeout_s
         log.info("push v%d: COEFF_WRITE attempt %d/%d", self.write.version, self.attempts, self.retries)
         if not self._safe_send(self.write):
-            # nothing left the host: wait the back-off, not the ack timeout, then try again
-            self._deadline = now + self._backoff()
+            # nothing left the host: no ack to wait for; back off, then try again (or give up)
+            self._retry_or_fail(now, "timeout", f"attempt {self.attempts}: the write could not be sent")
 
     def _backoff(self) -> float:
         """Delay before the next write [s]: doubling per attempt, capped, +-25 % jitter."""
@@ -258,8 +260,6 @@ class PushTransaction:
             return
         if self.phase is PushPhase.BACKOFF:
             self._attempt(now)
-        elif self.phase is PushPhase.WAIT_ACK and self._last_attempt_unsent():
-            self._retry_or_fail(now, "timeout", f"attempt {self.attempts}: the write could not be sent")
         elif self.phase is PushPhase.WAIT_ACK:
             self._retry_or_fail(now, "timeout", f"no ack within {self.timeout_s:.1f} s")
         elif self.phase is PushPhase.WAIT_READBACK:
@@ -268,9 +268,6 @@ class PushTransaction:
             else:
                 self.reasons.append("no COEFF_REPORT after the ack")
                 self._finish("readback_timeout", ok=False, transient=True)
-
-    def _last_attempt_unsent(self) -> bool:
-        return bool(self.reasons) and self.reasons[-1].startswith("CoeffWrite not sent")
 
 
 def _nak_name(reason: int) -> str:
