@@ -248,6 +248,7 @@ def sc_start_without_unit(rig: Rig) -> Result:
     res = Result("start_without_unit", rig.link,
                  "daemon started 3 s before the unit exists; then the unit appears")
     rig.start_daemon()
+    rig.wait(rig.status, 30)  # the daemon is up and answering (its start-up takes ~1-2 s)
     time.sleep(3.0)
     st = rig.status()
     res.notes.append(f"before: {st.get('state')}: {st.get('reason')}")
