@@ -152,7 +152,7 @@ def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: n
     ap.power_on()
     before_params = dict(ap.params)
     prof = PROFILES[kind](0)
-    raw = ap._raw_dps(temps)
+    raw = ap.raw_offset_dps(temps)
 
     def error(p: dict[str, float]) -> np.ndarray:
         from gyrocal.mavlink.poly import evaluate

@@ -85,7 +85,7 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
     before = dict(truth.params)
     prof = ArduPilot(0)
     temps = np.linspace(params["INS_TCAL1_TMIN"], params["INS_TCAL1_TMAX"], 5)
-    raw = truth._raw_dps(temps)
+    raw = truth.raw_offset_dps(temps)
 
     def worst(p: dict) -> np.ndarray:
         return np.max(np.abs(raw - evaluate(prof.applied(p), temps) - prof.clamp_adjust(p, temps)), axis=0)

@@ -91,7 +91,7 @@ def reconstruction_error_dps(ring: RingBuffer, report: CoeffReport, kind: str, b
     ap = VirtualAutopilot(kind, 250, 0)
     ap.boot_count = boot - 1
     ap.power_on()
-    raw_true = ap._raw_dps(s["temp"])
+    raw_true = ap.raw_offset_dps(s["temp"])
     out = np.column_stack([s["wx"], s["wy"], s["wz"]])
     rebuilt = out + evaluate(np.asarray(report.coeffs_dps), s["temp"])  # any prefix of the cubic
     return np.mean(rebuilt - raw_true, axis=0)

@@ -163,12 +163,13 @@ class VirtualAutopilot:
             b.tc_running = self.params["TC_G_ENABLE"] == 1.0
         elif self.params.get("INS_GYR_CAL") == 1.0:
             # the boot gyro calibration averages the raw rate (tcal and offsets are not applied then)
-            raw = self._raw_dps(np.array([temp0]))[0] + self._rng.normal(0, self.noise_dps / 30, 3)
+            raw = self.raw_offset_dps(np.array([temp0]))[0] + self._rng.normal(0, self.noise_dps / 30, 3)
             for ax, v in zip("XYZ", raw, strict=True):
                 self.params[f"INS_GYROFFS_{ax}"] = f32(v * RAD)
             self.params["INS_GYR1_CALTEMP"] = f32(temp0)
 
-    def _raw_dps(self, temp_c: np.ndarray) -> np.ndarray:
+    def raw_offset_dps(self, temp_c: np.ndarray) -> np.ndarray:
+        """The true gyro offset of this boot at temp_c, (N, 3) [deg/s]: switch-on bias + Q(T), no noise."""
         from gyrocal.mavlink.poly import evaluate
 
         return evaluate(self.q_true, temp_c) + self.boot.bias_dps
@@ -208,7 +209,7 @@ class VirtualAutopilot:
 
     def offset_error_dps(self, temp_c: float) -> np.ndarray:
         """True offset left in the output at temp_c [deg/s]: raw offset minus what is subtracted."""
-        return self._raw_dps(np.array([temp_c]))[0] - self.compensation_dps(temp_c)
+        return self.raw_offset_dps(np.array([temp_c]))[0] - self.compensation_dps(temp_c)
 
     def render(self, t_s: float) -> list[Any]:
         """All messages due up to unit time t_s [s since boot], in time order."""
@@ -237,7 +238,7 @@ class VirtualAutopilot:
 
     def _imu_message(self, mid: int, ts: float, temp: float) -> Any:
         d = self.d
-        gyro_dps = self._raw_dps(np.array([temp]))[0] + self._rng.normal(0.0, self.noise_dps, 3)
+        gyro_dps = self.raw_offset_dps(np.array([temp]))[0] + self._rng.normal(0.0, self.noise_dps, 3)
         gyro_dps = gyro_dps - self.compensation_dps(temp)
         acc = np.array([0.0, 0.0, -G0]) + self._rng.normal(0.0, 0.02, 3)  # level, at rest, FRD
         usec = int(round(ts * 1e6))
