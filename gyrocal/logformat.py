@@ -1,11 +1,16 @@
-"""Contract 1: the CSV log format shared by measured data and simulator recordings.
+"""The CSV log format shared by measured data and simulator recordings (docs/logformat.md).
 
 A log is a CSV file with a header row, optionally preceded by ``# key: value`` metadata lines.
-Columns and units (see ../shared/DESIGN.md):
+Columns and units:
 
 - ``t`` [s], ``wx wy wz`` [deg/s], ``ax ay az`` [g]: required;
 - ``temp`` [degC], ``session`` [switch-on index], ``ref_wx ref_wy ref_wz`` [deg/s]: optional;
 - any other numeric column: an extra covariate.
+
+A ``# units: gyro=deg/s accel=g temp=degC time=s`` line declares the units the file holds; the
+reader converts other declared units (rad/s, m/s^2, ms, ...) to these, and ``write_log`` always
+writes this line. ``read_log(path, rename=..., units=...)`` reads a CSV with other column names or
+units (``gyrocal fit --columns/--units``).
 
 Why a hand-written reader rather than ``numpy.genfromtxt``: a bad file must be rejected with the
 line and the column named, and rows holding NaN/Inf must be reported and skipped, never silently
@@ -25,6 +30,8 @@ import numpy as np
 from gyrocal.errors import LogFormatError
 
 REQUIRED = ("t", "wx", "wy", "wz", "ax", "ay", "az")
+CANONICAL_UNITS = "gyro=deg/s accel=g temp=degC time=s"
+"""The units every reader delivers and ``write_log`` declares."""
 OPTIONAL = ("temp", "session", "ref_wx", "ref_wy", "ref_wz")
 AXES = ("x", "y", "z")
 
@@ -35,12 +42,19 @@ class LogData:
 
     ``columns`` always holds the required columns and ``session`` (zeros when the file had none).
     ``skipped_rows`` lists the 1-based file line numbers of rows dropped for NaN/Inf values.
+    ``dropped`` counts every row or record a reader left out, by reason (``nonfinite``, ``crc``,
+    ``no_accel``, ...), so that each command can say what it did not use. ``warnings`` holds
+    what the reader noticed but could not decide (e.g. data that looks like SI units).
     """
 
     columns: dict[str, np.ndarray]
     metadata: dict[str, str] = field(default_factory=dict)
     skipped_rows: list[int] = field(default_factory=list)
     source: str = ""
+    dropped: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    data_rows: int = 0
+    """Data rows or records the source held, before anything was dropped."""
 
     def __len__(self) -> int:
         return int(self.columns["t"].shape[0])
@@ -74,6 +88,9 @@ class LogData:
             dict(self.metadata),
             list(self.skipped_rows),
             self.source,
+            dict(self.dropped),
+            list(self.warnings),
+            self.data_rows,
         )
 
 
@@ -87,12 +104,17 @@ def _parse_float(text: str, path: str, line: int, column: str) -> float:
         ) from None
 
 
-def read_log(path: str | Path) -> LogData:
-    """Read a Contract 1 log, rejecting a malformed file and skipping non-finite rows.
+def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
+             units: Mapping[str, str] | None = None) -> LogData:
+    """Read a CSV log, rejecting a malformed file and skipping non-finite rows.
 
     Raises LogFormatError naming the line and the column for: a missing required column, a
     non-numeric value, a row with the wrong number of fields, or time going backwards within a
     session. Rows with NaN or Inf are listed in ``skipped_rows`` and left out.
+
+    ``rename`` maps our column names to the file's (``{"wx": "gyro_x"}``); ``units`` maps a
+    quantity (gyro, accel, temp, time) to the unit the file holds, overriding its ``# units:`` line.
+    Values are converted to deg/s, g, degC and s (see gyrocal.readers.units).
     """
     p = Path(path)
     name = str(p)
@@ -120,11 +142,19 @@ def read_log(path: str | Path) -> LogData:
             break
         if header is None:
             raise LogFormatError(f"{name}: no header row; the first non-# line must name the columns")
+        if rename:
+            absent = [f"{ours}={theirs}" for ours, theirs in rename.items() if theirs not in header]
+            if absent:
+                raise LogFormatError(f"{name}:{header_line}: --columns {', '.join(absent)}: no such column "
+                                     f"in the header ({', '.join(header)})")
+            back = {theirs: ours for ours, theirs in rename.items()}
+            header = [back.get(h, h) for h in header]
         missing = [c for c in REQUIRED if c not in header]
         if missing:
             raise LogFormatError(
                 f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
-                f"header; a log needs {', '.join(REQUIRED)}"
+                f"header; a log needs {', '.join(REQUIRED)} (map other names with --columns, "
+                "see docs/logformat.md)"
             )
         if len(set(header)) != len(header):
             raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
@@ -150,8 +180,20 @@ def read_log(path: str | Path) -> LogData:
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
         columns["session"] = np.zeros(table.shape[0])
+    from gyrocal.readers.units import convert_columns, declared_units, looks_like_si
+
+    declared = declared_units(metadata.get("units", ""), f"{name}: '# units:' line")
+    declared.update(units or {})
+    convert_columns(columns, declared)
+    if declared:
+        metadata["units"] = CANONICAL_UNITS
     _check_time_order(columns, name)
-    return LogData(columns, metadata, skipped, name)
+    log = LogData(columns, metadata, skipped, name, {"nonfinite": len(skipped)} if skipped else {},
+                  data_rows=len(rows) + len(skipped))
+    warning = looks_like_si(log)
+    if warning:
+        log.warnings.append(warning)
+    return log
 
 
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:
@@ -172,11 +214,16 @@ def write_log(
     metadata: Mapping[str, str] | None = None,
     order: Iterable[str] | None = None,
 ) -> None:
-    """Write a Contract 1 log. Columns are written in ``order`` (default: contract order first)."""
+    """Write a log (docs/logformat.md). Columns are written in ``order`` (default: named ones first).
+
+    The ``# units:`` line is always written, with the canonical units the columns must hold.
+    """
     names = list(order) if order is not None else _default_order(columns)
     data = np.column_stack([np.asarray(columns[c], dtype=np.float64) for c in names])
+    meta = {k: v for k, v in (metadata or {}).items() if k != "units"}
+    meta["units"] = CANONICAL_UNITS
     with Path(path).open("w", encoding="utf-8", newline="") as fh:
-        for key, value in (metadata or {}).items():
+        for key, value in meta.items():
             fh.write(f"# {key}: {value}\n")
         fh.write(",".join(names) + "\n")
         np.savetxt(fh, data, delimiter=",", fmt="%.10g")
