@@ -40,7 +40,8 @@ def main() -> int:
     rows = [[b] + [0.0] * (len(names) - 1) for b in (0.002, -0.001, 0.0005)]
     flash.write_text(json.dumps({"boot_count": 2, "applied": {
         "version": 3, "terms_id": terms_id(names), "coeffs_dps": rows}}))
-    bus = can.Bus(interface="udp_multicast", channel="239.74.163.2", port=port)  # loops own frames back anyway
+    # udp_multicast loops our own frames back, so the host's requests are recorded too
+    bus = can.Bus(interface="udp_multicast", channel="239.74.163.2", port=port)
     logger = can.Logger(a.out)
     codec = CanCodec()
     sim = subprocess.Popen([sys.executable, "-m", "gyrocal.cli", "sim", "--link", "can", "--can-port",

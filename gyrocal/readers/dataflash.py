@@ -53,4 +53,5 @@ def read_dataflash(path: str, options: ReadOptions) -> LogData:
     a = np.asarray(rows, dtype=np.float64)
     meta = {"sensor": f"ArduPilot IMU[{inst}]", "frame": "body",
             "correction": "after ArduPilot's offsets, scale and orientation"}
+    meta["other_instance_records"] = str(other)
     return si_imu_log(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], meta, path)
