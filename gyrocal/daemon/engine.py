@@ -240,6 +240,7 @@ class Engine:
             log.info("HELLO from unit %d (firmware %s, boot %d): switch-on, new session",
                      msg.serial, msg.fw_version, msg.boot_count)
             self.last_hello = msg
+            self._last_seq = None  # seq restarts at a switch-on: not a second restart to detect
             self._start_session(msg, now)
             return
         if self.session is not None:

@@ -109,7 +109,8 @@ class Replay:
                              "reason": st["reason"],
                              "samples": st["samples"], "still_samples": st["still_samples"],
                              "trained_samples": st["trained_samples"], "converged": st["converged"],
-                             "applied": st["applied"], "last_push": st["last_push"], "terms": st["terms"],
+                             "applied": st["applied"], "terms": st["terms"],
+                             "last_push": {k: v for k, v in st["last_push"].items() if k != "utc"},
                              "coefficients_dps": st["coefficients_dps"],
                              "uncertainty_dps": st["uncertainty_dps"], "alarm": st["alarm"]})
         pushes = []
@@ -123,7 +124,7 @@ class Replay:
             "samples": samples, "dropped": {**self.recording.dropped(),
                                             **({"nonfinite": eng.dropped_nonfinite} if eng.dropped_nonfinite
                                                else {})},
-            "samples_before_hello": eng.samples_before_hello,
+            "samples_before_hello": eng.samples_before_hello, "sessions_started": eng.sessions_started,
             "replayed_s": round(duration, 3), "wall_s": round(self.wall_s, 3),
             "samples_per_s": round(samples / self.wall_s, 1) if self.wall_s > 0 else None,
             "sessions": sessions, "validations": self.validations, "pushes": pushes,
