@@ -47,6 +47,7 @@ def _cfg(tmp_path: Path):  # noqa: ANN202
                               "watchdog": False})
 
 
+@pytest.mark.slow
 def test_replay_is_deterministic_and_records_the_push(sim_log: Path, tmp_path: Path) -> None:
     runs = [replay(open_recording(str(sim_log)), _cfg(tmp_path)) for _ in range(2)]
     a, b = runs
@@ -135,6 +136,7 @@ def test_replay_link_kind_is_registered_and_checked(sim_log: Path) -> None:
     assert isinstance(got[-1], CoeffReport) and got[-1].version == 0  # a sample log: no set applied
 
 
+@pytest.mark.slow
 def test_pty_player_feeds_a_serial_link_and_answers_it(sim_log: Path, tmp_path: Path) -> None:
     from gyrocal.replay.pty_player import play_pty
 
