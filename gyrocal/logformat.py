@@ -20,6 +20,7 @@ turned into numbers an estimator would believe.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -158,25 +159,12 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
             )
         if len(set(header)) != len(header):
             raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
-        rows: list[list[float]] = []
-        skipped: list[int] = []
         width = len(header)
-        for lineno, raw in lines:
-            text = raw.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = text.split(",")
-            if len(fields) != width:
-                raise LogFormatError(
-                    f"{name}:{lineno}: {len(fields)} fields where the header has {width}; "
-                    "every row needs one value per column"
-                )
-            values = [_parse_float(f, name, lineno, header[i]) for i, f in enumerate(fields)]
-            if not all(math.isfinite(v) for v in values):
-                skipped.append(lineno)
-                continue
-            rows.append(values)
-    table = np.asarray(rows, dtype=np.float64).reshape(-1, width)
+        rest = fh.read()
+    table, skipped = _fast_body(rest, width, header_line)
+    if table is None:  # comments, blank lines or a bad value: the slow path names the line and column
+        table, skipped = _slow_body(rest, width, header_line, header, name)
+    n_rows = table.shape[0]
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
         columns["session"] = np.zeros(table.shape[0])
@@ -189,11 +177,53 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
         metadata["units"] = CANONICAL_UNITS
     _check_time_order(columns, name)
     log = LogData(columns, metadata, skipped, name, {"nonfinite": len(skipped)} if skipped else {},
-                  data_rows=len(rows) + len(skipped))
+                  data_rows=n_rows + len(skipped))
     warning = looks_like_si(log)
     if warning:
         log.warnings.append(warning)
     return log
+
+
+def _fast_body(rest: str, width: int, header_line: int) -> tuple[np.ndarray | None, list[int]]:
+    """numpy's C parser for a body of plain numeric rows (~10x the line-by-line loop), else None."""
+    body = rest.strip("\n")
+    if not body:
+        return np.zeros((0, width)), []
+    if "#" in body or "\n\n" in body or "\r" in body:
+        return None, []
+    try:
+        table = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2)
+    except ValueError:
+        return None, []
+    if table.shape[1] != width:
+        return None, []
+    bad = ~np.isfinite(table).all(axis=1)
+    if not bad.any():
+        return table, []
+    first = header_line + 1 + (len(rest) - len(rest.lstrip("\n")))  # the file line of the first row
+    return table[~bad], [int(first + i) for i in np.flatnonzero(bad)]
+
+
+def _slow_body(rest: str, width: int, header_line: int, header: list[str],
+               name: str) -> tuple[np.ndarray, list[int]]:
+    rows: list[list[float]] = []
+    skipped: list[int] = []
+    for lineno, raw in enumerate(rest.splitlines(), start=header_line + 1):
+        text = raw.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.split(",")
+        if len(fields) != width:
+            raise LogFormatError(
+                f"{name}:{lineno}: {len(fields)} fields where the header has {width}; "
+                "every row needs one value per column"
+            )
+        values = [_parse_float(f, name, lineno, header[i]) for i, f in enumerate(fields)]
+        if not all(math.isfinite(v) for v in values):
+            skipped.append(lineno)
+            continue
+        rows.append(values)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, width), skipped
 
 
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:

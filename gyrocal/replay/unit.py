@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.daemon.session import AppliedSet
+from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import (
     CoeffAck,
     CoeffNak,
@@ -56,6 +57,9 @@ class ReplayUnit:
         self.unit_time_s = 0.0
         self._t0: float | None = None
         self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)
+        self._spec_key: tuple[tuple[str, ...], tuple[str, ...]] | None = None
+        self._spec_ours: TermSpec | None = None
+        self._spec_rec: TermSpec | None = None
 
     # -- the recording -------------------------------------------------------------------------
     def on_recorded(self, msg: Any) -> bool:
@@ -117,12 +121,28 @@ class ReplayUnit:
             return block
         cols = {c: block[c] for c in ("t", "ax", "ay", "az", "temp")}
         cols.update(t_on=block["t"] - self._t0, dtemp=np.full(block.size, dtemp))
-        delta = self.recorded.compensation(cols) - self.ours.compensation(cols)
+        delta = self._delta(cols)
         out = block.copy()
         out["wx"] += delta[:, 0]
         out["wy"] += delta[:, 1]
         out["wz"] += delta[:, 2]
         return out
+
+    def _delta(self, cols: dict[str, np.ndarray]) -> np.ndarray:
+        """C_rec . phi - C_ours . phi, (N, 3) [deg/s]: one design matrix when both sets share terms."""
+        rec, ours = self.recorded, self.ours
+        assert ours is not None
+        key = (rec.names, ours.names)
+        if self._spec_key != key:
+            self._spec_key = key
+            self._spec_ours = TermSpec.parse(ours.names)
+            self._spec_rec = TermSpec.parse(rec.names) if rec.names and rec.names != ours.names else None
+        phi = self._spec_ours.design(cols)
+        if rec.names == ours.names:
+            return phi @ (rec.coeffs_dps - ours.coeffs_dps).T
+        comp_rec = self._spec_rec.design(cols) @ rec.coeffs_dps.T if self._spec_rec is not None \
+            and np.any(rec.coeffs_dps) else 0.0
+        return comp_rec - phi @ ours.coeffs_dps.T
 
     def _temperature_rate(self, block: np.ndarray) -> float:
         """dT/dt [degC/s] as the daemon estimates it: the slope of 1 s means over the last 20 s."""
