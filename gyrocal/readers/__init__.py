@@ -95,7 +95,10 @@ def read_any(path: str | Path, kind: str | None = None, options: ReadOptions | N
         raise ConfigError(f"--format {kind!r} unknown; choose one of {', '.join(READERS)}")
     module, func = READERS[kind]
     log: LogData = getattr(importlib.import_module(module), func)(str(path), options or ReadOptions())
-    log.metadata.setdefault("format", kind)
+    previous = log.metadata.get("format")
+    if previous and previous != kind:  # a converted log keeps where it came from
+        log.metadata["source_format"] = previous
+    log.metadata["format"] = kind
     return log
 
 
