@@ -95,11 +95,11 @@ def bench_csv(seconds: float, tmp: Path) -> dict:
     cols = SessionStream(TruthModel(), tumble(1.2, 0.4), RATE, seed=12, boot=0).chunk(int(seconds * RATE))
     path = tmp / "log.csv"
     write_log(path, {c: cols[c] for c in COLS})
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     log = read_any(path)
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {"log_s": seconds, "samples": len(log), "bytes": path.stat().st_size, "seconds": round(dt, 2),
-            "samples_per_s": round(len(log) / dt)}
+            "samples_per_s": round(len(log) / dt), "samples_per_cpu_s": round(len(log) / cpu)}
 
 
 def bench_blf(seconds: float, tmp: Path) -> dict:
@@ -121,11 +121,12 @@ def bench_blf(seconds: float, tmp: Path) -> dict:
                 f.timestamp = float(cols["t"][i])
                 out(f)
                 frames += 1
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     log = read_any(path)
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {"log_s": seconds, "samples": len(log), "frames": frames, "bytes": path.stat().st_size,
-            "seconds": round(dt, 2), "samples_per_s": round(len(log) / dt), "dropped": log.dropped}
+            "seconds": round(dt, 2), "samples_per_s": round(len(log) / dt),
+            "samples_per_cpu_s": round(len(log) / cpu), "dropped": log.dropped}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -134,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", metavar="OUT.json", help="write the figures here ('-' = stdout)")
     args = ap.parse_args(argv)
     replay_s, csv_s, blf_s = (300.0, 60.0, 15.0) if args.quick else (3600.0, 600.0, 120.0)
-    fig: dict = {"quick": args.quick, "cpus": os.cpu_count()}
+    fig: dict = {"quick": args.quick, "cpus": os.cpu_count(), "load_average_1min": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         fig["replay"] = bench_replay(replay_s, d)
@@ -146,9 +147,14 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['engine_s']} s engine + {r['gen_s']} s generating; "
                   f"{r['samples_per_cpu_s']:,} samples per CPU-second)", file=sys.stderr, flush=True)
         fig["csv_read"] = bench_csv(csv_s, d)
-        print(f"CSV read: {fig['csv_read']['samples_per_s']:,} samples/s", file=sys.stderr, flush=True)
+        c = fig["csv_read"]
+        print(f"CSV read: {c['samples_per_s']:,} samples/s ({c['samples_per_cpu_s']:,} per CPU-second)",
+              file=sys.stderr, flush=True)
         fig["blf_read"] = bench_blf(blf_s, d)
-        print(f".blf read: {fig['blf_read']['samples_per_s']:,} samples/s", file=sys.stderr, flush=True)
+        fig["load_average_1min_end"] = os.getloadavg()[0]
+        b = fig["blf_read"]
+        print(f".blf read: {b['samples_per_s']:,} samples/s ({b['samples_per_cpu_s']:,} per CPU-second)",
+              file=sys.stderr, flush=True)
     text = json.dumps(fig, indent=1)
     if args.json == "-":
         print(text)
