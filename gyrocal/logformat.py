@@ -161,9 +161,11 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
             raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
         width = len(header)
         rest = fh.read()
-    table, skipped = _fast_body(rest, width, header_line)
+    keep, ignored = _numeric_columns(rest, header)
+    table, skipped = _fast_body(rest, width, header_line, keep)
     if table is None:  # comments, blank lines or a bad value: the slow path names the line and column
-        table, skipped = _slow_body(rest, width, header_line, header, name)
+        table, skipped = _slow_body(rest, width, header_line, header, name, keep)
+    header = [header[i] for i in keep]
     n_rows = table.shape[0]
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
@@ -178,24 +180,55 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
     _check_time_order(columns, name)
     log = LogData(columns, metadata, skipped, name, {"nonfinite": len(skipped)} if skipped else {},
                   data_rows=n_rows + len(skipped))
+    log.warnings.extend(f"{name}: column '{c}' is not numeric (first row: {v!r}); ignored"
+                        for c, v in ignored)
     warning = looks_like_si(log)
     if warning:
         log.warnings.append(warning)
     return log
 
 
-def _fast_body(rest: str, width: int, header_line: int) -> tuple[np.ndarray | None, list[int]]:
+def _numeric_columns(rest: str, header: list[str]) -> tuple[list[int], list[tuple[str, str]]]:
+    """Indices of the columns to read, and the extra columns left out as text (a foreign CSV's
+    frame id or date), judged on the first data row. Named columns are always read, so a text
+    value there is an error naming its line."""
+    first = next((ln.strip() for ln in io.StringIO(rest) if ln.strip() and not ln.lstrip().startswith("#")),
+                 None)
+    if first is None:
+        return list(range(len(header))), []
+    fields = first.split(",")
+    if len(fields) != len(header):
+        return list(range(len(header))), []
+    named = set(REQUIRED) | set(OPTIONAL)
+    ignored: list[tuple[str, str]] = []
+    for h, f in zip(header, fields, strict=True):
+        if h in named:
+            continue
+        try:
+            float(f)
+        except ValueError:
+            ignored.append((h, f.strip()))
+    skip = {h for h, _ in ignored}
+    return [i for i, h in enumerate(header) if h not in skip], ignored
+
+
+def _fast_body(rest: str, width: int, header_line: int,
+               keep: list[int]) -> tuple[np.ndarray | None, list[int]]:
     """numpy's C parser for a body of plain numeric rows (~10x the line-by-line loop), else None."""
     body = rest.strip("\n")
     if not body:
-        return np.zeros((0, width)), []
+        return np.zeros((0, len(keep))), []
     if "#" in body or "\n\n" in body or "\r" in body:
         return None, []
+    first = body.split("\n", 1)[0]
+    if first.count(",") != width - 1:
+        return None, []
     try:
-        table = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2)
+        table = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2,
+                           usecols=keep if len(keep) != width else None)
     except ValueError:
         return None, []
-    if table.shape[1] != width:
+    if table.shape[1] != len(keep):
         return None, []
     bad = ~np.isfinite(table).all(axis=1)
     if not bad.any():
@@ -204,8 +237,8 @@ def _fast_body(rest: str, width: int, header_line: int) -> tuple[np.ndarray | No
     return table[~bad], [int(first + i) for i in np.flatnonzero(bad)]
 
 
-def _slow_body(rest: str, width: int, header_line: int, header: list[str],
-               name: str) -> tuple[np.ndarray, list[int]]:
+def _slow_body(rest: str, width: int, header_line: int, header: list[str], name: str,
+               keep: list[int]) -> tuple[np.ndarray, list[int]]:
     rows: list[list[float]] = []
     skipped: list[int] = []
     for lineno, raw in enumerate(rest.splitlines(), start=header_line + 1):
@@ -218,12 +251,12 @@ def _slow_body(rest: str, width: int, header_line: int, header: list[str],
                 f"{name}:{lineno}: {len(fields)} fields where the header has {width}; "
                 "every row needs one value per column"
             )
-        values = [_parse_float(f, name, lineno, header[i]) for i, f in enumerate(fields)]
+        values = [_parse_float(fields[i], name, lineno, header[i]) for i in keep]
         if not all(math.isfinite(v) for v in values):
             skipped.append(lineno)
             continue
         rows.append(values)
-    return np.asarray(rows, dtype=np.float64).reshape(-1, width), skipped
+    return np.asarray(rows, dtype=np.float64).reshape(-1, len(keep)), skipped
 
 
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:

@@ -19,7 +19,7 @@ from gyrocal.readers import ReadOptions, detect_kind, options_from_args, read_an
 from gyrocal.readers.units import parse_units
 from gyrocal.sim.schedule import tumble
 from gyrocal.sim.truth import SessionStream, TruthModel
-from tests.foreign_logs import write_dataflash, write_rosbag
+from tests.foreign_logs import write_dataflash, write_rosbag, write_rosbag1
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 COLS = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")
@@ -89,6 +89,19 @@ def test_bad_column_map_and_units_name_the_fix(dps_log: Path) -> None:
         options_from_args(Namespace(columns="wx", units=None))
     with pytest.raises(ConfigError, match="unknown log extension"):
         detect_kind("x.xyz")
+
+
+def test_text_columns_of_a_foreign_csv_are_left_out_with_a_warning(tmp_path: Path) -> None:
+    path = tmp_path / "foreign.csv"
+    path.write_text("t,frame,wx,wy,wz,ax,ay,az,note\n" + "".join(
+        f"{i / 100},imu_link,0.1,0.2,0.3,0,0,1,{'ok' if i % 2 else 'still'}\n" for i in range(30)))
+    log = read_any(path)
+    assert len(log) == 30 and not log.has("frame") and not log.has("note")
+    assert any("column 'frame' is not numeric" in w for w in log.warnings)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,wx,wy,wz,ax,ay,az\n0,0.1,0.2,0.3,0,0,1\n0.01,0.1,x,0.3,0,0,1\n")
+    with pytest.raises(LogFormatError, match=r"bad.csv:3: column 'wy' holds 'x'"):
+        read_any(bad)
 
 
 def test_fit_counts_the_nan_rows_it_dropped(sim_cols: dict[str, np.ndarray], tmp_path: Path,
@@ -228,6 +241,22 @@ def test_rosbag2_imu_with_temperature(sim_cols: dict[str, np.ndarray], tmp_path:
     np.testing.assert_allclose(log["wy"], sim_cols["wy"][:n], atol=1e-9)
     np.testing.assert_allclose(log["ay"], sim_cols["ay"][:n], atol=1e-12)
     assert np.all(np.abs(log["temp"] - sim_cols["temp"][:n]) < 0.5)
+
+
+def test_mcap_and_ros1_bags(sim_cols: dict[str, np.ndarray], tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    n = 200
+    g = np.column_stack([sim_cols[f"w{a}"][:n] for a in "xyz"]) * D2R
+    acc = np.column_stack([sim_cols[f"a{a}"][:n] for a in "xyz"]) * G0
+    write_rosbag(tmp_path / "m", sim_cols["t"][:n] + 1.0, g, acc, mcap=True)
+    lone = tmp_path / "lone.mcap"  # an .mcap file on its own, without the bag's metadata.yaml
+    lone.write_bytes(next((tmp_path / "m").glob("*.mcap")).read_bytes())
+    write_rosbag1(tmp_path / "r1.bag", sim_cols["t"][:n] + 1.0, g, acc)
+    for path in (tmp_path / "m", lone, tmp_path / "r1.bag"):
+        log = read_any(path)
+        assert len(log) == n, path
+        np.testing.assert_allclose(log["wz"], sim_cols["wz"][:n], atol=1e-9)
+        np.testing.assert_allclose(log["ax"], sim_cols["ax"][:n], atol=1e-12)
 
 
 def test_convert_a_foreign_log_to_csv_and_back(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -8,7 +8,7 @@ finds interfaces), so ``gyrocal fit run.csv`` never imports pyulog, pymavlink or
 - ``serial``: a capture of the serial protocol's raw bytes (.cap, .raw, .serial);
 - ``ulog``: PX4 .ulg (sensor_gyro + sensor_accel of one instance, or sensor_combined);
 - ``dataflash``: ArduPilot .bin (IMU messages of one instance);
-- ``rosbag``: rosbag2 (.mcap, .db3 or its directory) sensor_msgs/msg/Imu.
+- ``rosbag``: rosbag2 (.mcap, .db3 or its directory) or ROS 1 .bag sensor_msgs/msg/Imu.
 
 Each reader converts to deg/s, g, degC and s, and counts what it dropped, by reason, in
 ``LogData.dropped``.
@@ -40,7 +40,7 @@ EXTENSIONS: dict[str, str] = {
     ".cap": "serial", ".raw": "serial", ".serial": "serial",
     ".ulg": "ulog",
     ".bin": "dataflash",
-    ".mcap": "rosbag", ".db3": "rosbag",
+    ".mcap": "rosbag", ".db3": "rosbag", ".bag": "rosbag",
 }
 """File extension -> kind; ``--format`` overrides. A .bin that does not start with DataFlash's
 0xA3 0x95 header is taken as a serial capture."""

@@ -1,4 +1,5 @@
-"""Reader ``rosbag``: rosbag2 bags (.mcap, .db3 or the bag directory) holding sensor_msgs/msg/Imu.
+"""Reader ``rosbag``: rosbag2 bags (.mcap, .db3 or the bag directory) or ROS 1 .bag files holding
+sensor_msgs/msg/Imu.
 
 ``sensor_msgs/Imu`` (REP 103/145): ``angular_velocity`` [rad/s] and ``linear_acceleration``
 [m/s^2], the accelerometer's specific force (gravity included, +9.81 up at rest), in the frame
@@ -23,7 +24,7 @@ TEMP = "sensor_msgs/msg/Temperature"
 
 
 def read_rosbag(path: str, options: ReadOptions) -> LogData:
-    """One Imu topic of a rosbag2 bag as log columns (``--topic`` when it holds several)."""
+    """One Imu topic of a rosbag2 or ROS 1 bag as log columns (``--topic`` when it holds several)."""
     require("rosbags", "reading ROS bags")
     from rosbags.highlevel import AnyReader
 
