@@ -3,8 +3,9 @@
 Which fields, and what they hold (PX4 msg/SensorGyro.msg, SensorAccel.msg, SensorCombined.msg):
 
 - ``sensor_gyro`` (per instance = per physical IMU): ``x y z`` angular velocity in the FRD *board*
-  frame [rad/s], as the driver publishes it (PX4Gyroscope: rotated and scaled, *before* the
-  sensors module applies the thermal/offset calibration), ``temperature`` [degC],
+  frame [rad/s], as the driver publishes it (PX4Gyroscope::update/updateFIFO: rotated, scaled,
+  and averaged over the FIFO's raw samples, *before* the sensors module applies the offset and
+  thermal calibration), ``temperature`` [degC],
   ``timestamp_sample`` [us]. ``sensor_accel`` the same in m/s^2. This is what a drift calibrator
   wants: the sensor's own output with its temperature.
 - ``sensor_combined`` (the selected IMU only): ``gyro_rad[3]`` [rad/s] and
