@@ -106,6 +106,26 @@ def test_a_can_recording_answers_from_its_own_hello_and_coeff_report(tmp_path: P
     assert s["trained_samples"] > 0 and not res["dropped"]
 
 
+def test_a_serial_capture_replays_through_the_same_decoder(tmp_path: Path) -> None:
+    from gyrocal.protocol.messages import Sample
+    from gyrocal.protocol.serial_framing import encode_frame
+    from gyrocal.protocol.termsets import terms_id
+
+    names = ["1", "gx", "gy", "gz", "gx^2", "gy^2", "gz^2", "gx*gy", "gy*gz", "gx*gz"]
+    c = SessionStream(TruthModel(), tumble(1.2, 0.4), 200.0, seed=8, boot=0).chunk(2000)
+    frames = [encode_frame(Hello(55, "3.0.1", 9, 200)),
+              encode_frame(CoeffReport(7, terms_id(names), [[0.001] + [0.0] * 9] * 3))]
+    frames += [encode_frame(Sample(i, float(c["t"][i]), (c["wx"][i], c["wy"][i], c["wz"][i]),
+                                   (c["ax"][i], c["ay"][i], c["az"][i]), float(c["temp"][i])))
+               for i in range(2000)]
+    cap = tmp_path / "link.cap"
+    cap.write_bytes(b"\x00garbage" + b"".join(frames))
+    res = replay(open_recording(str(cap)), _cfg(tmp_path))
+    s = res["sessions"][0]
+    assert res["format"] == "serial" and res["samples"] == 2000 and res["dropped"]["garbage_bytes"] == 8
+    assert s["unit"] == {"serial": 55, "boot_count": 9, "fw": "3.0.1"} and s["applied"]["version"] == 7
+
+
 def test_replay_cli_writes_json_and_text(sim_log: Path, tmp_path: Path,
                                          capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "r.json"
