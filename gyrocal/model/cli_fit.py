@@ -12,6 +12,7 @@ Uncertainty, and what it means per method (``uncertainty_kind`` in the JSON):
 
 - batch, rls: ``ls_1sigma``, the least-squares 1-sigma from the residual (RLS with forgetting 1
   is the least-squares solution; with forgetting < 1 it is the sigma of the weighted problem).
+- kf: ``kalman_posterior_1sigma``, from the filter's covariance (model/bias_kalman.py).
 - lms, nlms: ``ls_1sigma_plus_offset``. These gradient methods stop short of the least-squares
   solution c_ls, and the LS sigma alone says nothing about that: on a tumble log NLMS sat ~37
   sigma away from batch while printing batch's sigma. Their error is (c - c_ls) + (c_ls - truth),
@@ -112,7 +113,7 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
         est.update_many(data.phi, data.y, data.t)
     coeffs, sigma, ident = est.coefficients, est.uncertainty, est.identifiability
     rms = est.residual_rms_dps
-    kind, offset = "ls_1sigma", None
+    kind, offset = ("kalman_posterior_1sigma" if method == "kf" else "ls_1sigma"), None
     if method in ("lms", "nlms"):
         ls = make_estimator("batch", spec, normaliser=norm)
         ls.update_many(data.phi, data.y, data.t)
@@ -148,6 +149,7 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
 
 UNCERTAINTY_LABEL = {
     "ls_1sigma": "+- least-squares 1-sigma",
+    "kalman_posterior_1sigma": "+- the Kalman filter's posterior 1-sigma",
     "ls_1sigma_plus_offset": "+- sqrt(offset from least squares^2 + LS sigma^2)",
 }
 

@@ -5,8 +5,8 @@ What the IMU message holds (ArduPilot AP_InertialSensor::Write_IMU, units from i
 [m/s^2] as ``get_gyro(i)``/``get_accel(i)`` return them, i.e. in the body frame *after* the
 calibrated offsets, scale factors and board orientation (and, on boards with it, the temperature
 calibration) and after the INS low-pass filters (INS_GYRO_FILTER, INS_ACCEL_FILTER), and ``T``
-the sensor temperature [degC]. It is logged at the main loop rate at most. Old logs name the instances IMU, IMU2,
-IMU3 instead of the ``I`` field; both are read.
+the sensor temperature [degC]. It is logged at the main loop rate at most. Old logs name the
+instances IMU, IMU2, IMU3 instead of the ``I`` field; both are read.
 """
 
 from __future__ import annotations
