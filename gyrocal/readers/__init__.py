@@ -20,6 +20,7 @@ import argparse
 import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 
 from gyrocal.errors import ConfigError, LogFormatError
 from gyrocal.logformat import LogData
@@ -102,7 +103,7 @@ def read_any(path: str | Path, kind: str | None = None, options: ReadOptions | N
     return log
 
 
-def require(module: str, what: str):  # noqa: ANN201 - returns a module
+def require(module: str, what: str) -> ModuleType:
     """Import an optional dependency, or raise ConfigError naming the extra that provides it."""
     try:
         return importlib.import_module(module)

@@ -28,7 +28,7 @@ class SerialRecording:
 
     def messages(self) -> Iterator[Any]:
         try:
-            fh = open(self.path, "rb")  # noqa: SIM115 - closed below, the generator may be abandoned
+            fh = open(self.path, "rb")  # closed by the with below
         except OSError as err:
             raise LogFormatError(f"{self.path}: cannot open the capture ({err.strerror})") from err
         with fh:

@@ -19,6 +19,8 @@ dropped and counted as ``no_accel``. Time is ``timestamp_sample`` (else ``timest
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from gyrocal.errors import ConfigError, LogFormatError
@@ -30,14 +32,14 @@ MIN_SAMPLES = 100
 """Fewer sensor_gyro samples than this (a topic logged at a few Hz) is not a log to fit."""
 
 
-def _topic(ulog, name: str, instance: int):  # noqa: ANN001, ANN202
+def _topic(ulog: Any, name: str, instance: int) -> Any:
     for d in ulog.data_list:
         if d.name == name and d.multi_id == instance:
             return d
     return None
 
 
-def _time_s(d) -> np.ndarray:  # noqa: ANN001
+def _time_s(d: Any) -> np.ndarray:
     ts = d.data.get("timestamp_sample", d.data["timestamp"])
     return np.asarray(ts, dtype=np.float64) * 1e-6
 
