@@ -185,3 +185,33 @@ def test_pty_player_feeds_a_serial_link_and_answers_it(sim_log: Path, tmp_path: 
         player.join(10)
     assert ring.pushed >= 1000 and any(isinstance(m, Hello) and m.serial == 31 for m in got)
     assert any(isinstance(m, CoeffReport) for m in got) and result["answers"] >= 1
+
+
+@pytest.mark.slow
+def test_bus_player_feeds_a_can_link_and_answers_it(sim_log: Path) -> None:
+    from gyrocal.replay.pty_player import play_bus
+
+    rec = open_recording(str(sim_log))
+    channel = f"h11-replay-{time.monotonic_ns()}"
+    bus = {"interface": "virtual", "channel": channel}
+    ring = RingBuffer(1 << 16)
+    got: list[object] = []
+    link = open_link({"kind": "can", "bus": bus}, ring, got.append)  # listening before the unit talks
+    stop = threading.Event()
+    result: dict = {}
+    player = threading.Thread(target=lambda: result.update(play_bus(
+        rec, bus, speed=20.0, linger_s=0.5, announce=lambda _: None, should_stop=stop.is_set)), daemon=True)
+    player.start()
+    deadline = time.monotonic() + 10
+    try:
+        while ring.pushed < 200 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        link.send(CoeffRead())
+        while not any(isinstance(m, CoeffReport) for m in got) and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        stop.set()
+        link.stop()
+        player.join(10)
+    assert ring.pushed >= 200 and isinstance(got[0], Hello) and got[0].serial == 31
+    assert any(isinstance(m, CoeffReport) for m in got) and result["answers"] >= 1

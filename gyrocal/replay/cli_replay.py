@@ -42,7 +42,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pty", action="store_true",
                         help="play the log into a pty in real time for a live daemon (prints the path)")
     parser.add_argument("--pty-link", metavar="PATH", help="with --pty: also symlink PATH to the pty")
-    parser.add_argument("--speed", type=float, default=1.0, help="with --pty: x real time (default 1)")
+    parser.add_argument("--bus", metavar="JSON",
+                        help="play the log onto a python-can bus in real time instead, e.g. "
+                             '\'{"interface": "socketcan", "channel": "vcan0"}\' (can.Bus arguments)')
+    parser.add_argument("--speed", type=float, default=1.0, help="with --pty/--bus: x real time (default 1)")
     add_arguments(parser)
 
 
@@ -53,11 +56,22 @@ def main(args: argparse.Namespace) -> int:
     if rec.log is not None:
         for w in rec.log.warnings:
             print(f"gyrocal: warning: {w}", file=sys.stderr)
-    if args.pty:
-        from gyrocal.replay.pty_player import play_pty
+    if args.pty or args.bus:
+        from gyrocal.replay.pty_player import play_bus, play_pty
 
-        res = play_pty(rec, args.pty_link, args.speed, announce=lambda p: print(p, flush=True))
-        _emit(args, res, f"{res['samples_sent']} samples played into {res['pty']}; "
+        def say(where: str) -> None:
+            print(where, flush=True)
+
+        if args.bus:
+            try:
+                bus = json.loads(args.bus)
+            except json.JSONDecodeError as err:
+                raise ConfigError(f"--bus: not JSON ({err.msg}); give can.Bus arguments, "
+                                  '\'{"interface": "socketcan", "channel": "vcan0"}\'') from None
+            res = play_bus(rec, bus, args.speed, announce=say, dbc_path=args.dbc)
+        else:
+            res = play_pty(rec, args.pty_link, args.speed, announce=say)
+        _emit(args, res, f"{res['samples_sent']} samples played into {res['target']}; "
                          f"{len(res['pushes'])} push(es) recorded")
         return 0
     from gyrocal.replay.run import replay

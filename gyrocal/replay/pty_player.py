@@ -1,9 +1,11 @@
-"""``gyrocal replay LOG --pty``: play a recording into a pty in real time, like gpsd's gpsfake.
+"""``gyrocal replay LOG --pty`` / ``--bus``: play a recording in real time, like gpsd's gpsfake.
 
-The recording's samples and HELLOs are written as serial frames (docs/protocol.md) at the pace of
-their unit time (x ``speed``); a live daemon opens the pty path printed on the first line of stdout
-(or ``--pty-link PATH``) as it would a unit's serial port. The host's requests are answered by the
-same ReplayUnit as off line: HELLO_REQUEST, COEFF_READ, and COEFF_WRITE acked and recorded. The
+The recording's samples and HELLOs are written as serial frames into a pty (docs/protocol.md), or
+as CAN frames onto a python-can bus, at the pace of their unit time (x ``speed``); a live daemon
+opens the pty path printed on the first line of stdout (or ``--pty-link PATH``) as it would a
+unit's serial port, or listens on the bus. Unlike ``can.player``, the replayed unit answers: the
+host's requests go to the same ReplayUnit as off line (HELLO_REQUEST, COEFF_READ, and COEFF_WRITE
+acked and recorded). The
 sample stream is cut into ``SLICE_S`` slices, and host frames are read between them, so a push is
 answered within a slice and the set it carries compensates the following samples.
 """
@@ -34,9 +36,25 @@ def play_pty(recording: Recording, link_path: str | None = None, speed: float = 
              announce: Callable[[str], None] = print, should_stop: Callable[[], bool] = lambda: False,
              ) -> dict[str, Any]:
     """Play ``recording`` into a new pty; returns what was sent and the pushes recorded."""
-    pty = PtyTransport(link_path)
+    return play(recording, PtyTransport(link_path), speed, linger_s, announce, should_stop)
+
+
+def play_bus(recording: Recording, bus_kwargs: dict[str, Any], speed: float = 1.0, linger_s: float = 2.0,
+             announce: Callable[[str], None] = print, should_stop: Callable[[], bool] = lambda: False,
+             dbc_path: str | None = None) -> dict[str, Any]:
+    """Play ``recording`` onto a python-can bus (``can.Bus(**bus_kwargs)``) as the unit would send it."""
+    from gyrocal.sim.transports import CanTransport
+
+    transport = CanTransport(bus_kwargs, dbc_path=dbc_path)
+    return play(recording, transport, speed, linger_s, announce, should_stop)
+
+
+def play(recording: Recording, pty: Any, speed: float = 1.0, linger_s: float = 2.0,
+         announce: Callable[[str], None] = print, should_stop: Callable[[], bool] = lambda: False,
+         ) -> dict[str, Any]:
+    """Play ``recording`` through a unit-side transport (PtyTransport or CanTransport)."""
     unit = ReplayUnit(recording.first_hello, recording.first_report)
-    announce(pty.path)
+    announce(pty.describe())
     sent = answered = 0
     wall0: float | None = None
     offset, last_t = 0.0, None
@@ -77,5 +95,5 @@ def play_pty(recording: Recording, link_path: str | None = None, speed: float = 
         serve(time.monotonic() + linger_s)  # answer a push or read that came with the last samples
     finally:
         pty.close()
-    return {"recording": recording.path, "pty": pty.path, "samples_sent": sent, "answers": answered,
+    return {"recording": recording.path, "target": pty.describe(), "samples_sent": sent, "answers": answered,
             "pushes": unit.pushes, "tx": dict(pty.stats)}
