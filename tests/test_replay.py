@@ -126,6 +126,14 @@ def test_a_serial_capture_replays_through_the_same_decoder(tmp_path: Path) -> No
     assert s["unit"] == {"serial": 55, "boot_count": 9, "fw": "3.0.1"} and s["applied"]["version"] == 7
 
 
+def test_a_converted_can_log_keeps_the_applied_set_for_replay(tmp_path: Path) -> None:
+    out = tmp_path / "blf.csv"
+    assert main(["convert", str(DATA / "sim_can" / "virtual_unit.blf"), str(out)]) == 0
+    rec = open_recording(str(out))
+    direct = open_recording(str(DATA / "sim_can" / "virtual_unit.blf"))
+    assert rec.first_report == direct.first_report and rec.first_report.version == 3
+
+
 def test_replay_cli_writes_json_and_text(sim_log: Path, tmp_path: Path,
                                          capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "r.json"

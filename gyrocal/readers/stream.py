@@ -3,12 +3,15 @@
 A recording of the link holds what the unit sent: HELLO at each switch-on, SAMPLEs, and answers
 such as COEFF_REPORT. ``messages_to_log`` makes the log columns from it: ``session`` counts
 switch-ons (a HELLO with a new serial or boot count, or a sample counter that goes back), ``t`` is
-the unit's time, and the first HELLO and COEFF_REPORT go into the metadata. The decoder's counters
-(CRC failures, garbage bytes, seq gaps, ...) are the reader's ``dropped`` accounting.
+the unit's time, and the first HELLO and COEFF_REPORT go into the metadata (the report whole:
+``applied_coeffs_dps`` as JSON, so a converted CSV still says how its output was compensated).
+The decoder's counters (CRC failures, garbage bytes, seq gaps, ...) are the reader's ``dropped``
+accounting.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -63,9 +66,10 @@ def messages_to_log(messages: Iterable[Any], source: str, stats: Mapping[str, in
             meta.setdefault("boot_count", str(m.boot_count))
             if m.rate_hz:
                 meta.setdefault("rate_hz", str(m.rate_hz))
-        elif isinstance(m, CoeffReport):
-            meta.setdefault("applied_version", str(m.version))
-            meta.setdefault("applied_terms_id", f"0x{m.terms_id:04x}")
+        elif isinstance(m, CoeffReport) and "applied_version" not in meta:
+            meta["applied_version"] = str(m.version)
+            meta["applied_terms_id"] = f"0x{m.terms_id:04x}"
+            meta["applied_coeffs_dps"] = json.dumps([list(r) for r in m.coeffs_dps])
     if rows or not chunks:
         chunks.append(np.asarray(rows, dtype=np.float64).reshape(-1, len(FIELDS)))
     table = np.concatenate(chunks)

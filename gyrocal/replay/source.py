@@ -3,13 +3,15 @@
 Link recordings (python-can logs, serial byte captures) hold the unit's own messages: they go
 through the live link's decoders, in order. Any other log (CSV, .ulg, .bin, rosbag2) holds samples
 only: each session becomes a HELLO (serial, firmware and boot count from the log's metadata when it
-has them) followed by its samples, with ``seq`` counting from 0 at the switch-on as a unit's does.
+has them) followed by its samples, with ``seq`` counting from 0 at the switch-on as a unit's does;
+the set the unit held comes from the ``applied_*`` metadata, else the unit held none.
 
 Sample blocks are ``SAMPLE_DTYPE`` arrays (the ring's records, rx = 0) of at most ``BLOCK`` samples.
 """
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -18,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.daemon.ring import SAMPLE_DTYPE
+from gyrocal.errors import LogFormatError, ProtocolError
 from gyrocal.logformat import LogData
 from gyrocal.protocol.messages import CoeffReport, Hello, Sample
 from gyrocal.readers import ReadOptions, detect_kind, read_any
@@ -99,7 +102,8 @@ def open_recording(path: str, kind: str | None = None, options: ReadOptions | No
         def make() -> Any:
             return SerialRecording(path)
     else:
-        return Recording(path, kind, log=read_any(path, kind, options))
+        log = read_any(path, kind, options)
+        return Recording(path, kind, log=log, first_report=applied_from_metadata(log.metadata, path))
     rec = Recording(path, kind, _messages=make)
     for m in make().messages():  # the scan: who the unit is and which set it holds
         if isinstance(m, Hello) and rec.first_hello is None:
@@ -109,6 +113,20 @@ def open_recording(path: str, kind: str | None = None, options: ReadOptions | No
         if rec.first_hello is not None and rec.first_report is not None:
             break
     return rec
+
+
+def applied_from_metadata(meta: dict[str, str], where: str) -> CoeffReport | None:
+    """The set a logged unit held, from ``applied_version/_terms_id/_coeffs_dps`` metadata (the CAN
+    and serial readers write them; a CSV converted from such a log keeps them). None when absent."""
+    if "applied_coeffs_dps" not in meta:
+        return None
+    try:
+        rows = json.loads(meta["applied_coeffs_dps"])
+        return CoeffReport(int(meta.get("applied_version", "0")), int(meta.get("applied_terms_id", "0"), 0),
+                           rows)
+    except (ValueError, TypeError, ProtocolError) as err:
+        raise LogFormatError(f"{where}: metadata 'applied_*' unreadable ({err}); fix or delete those "
+                             "lines") from None
 
 
 def _fw(text: str) -> str:
