@@ -57,6 +57,9 @@ def main(args: argparse.Namespace) -> int:
     else:
         log = load_dataset(args.dataset, src)
     order = [c for c in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session") if c in log.columns]
-    write_log(out, log.columns, log.metadata, order + [c for c in log.columns if c not in order])
+    meta = dict(log.metadata)
+    if log.dropped:  # the converted log says what its source lost
+        meta["dropped"] = " ".join(f"{k}={v}" for k, v in log.dropped.items())
+    write_log(out, log.columns, meta, order + [c for c in log.columns if c not in order])
     print(f"{out}: {len(log)} samples from {log.source}", file=sys.stderr)
     return 0
