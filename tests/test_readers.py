@@ -266,3 +266,26 @@ def test_convert_a_foreign_log_to_csv_and_back(tmp_path: Path, capsys: pytest.Ca
     direct = read_any(DATA / "sim_can" / "virtual_unit.blf")
     assert back.metadata["unit_serial"] == "4242" and back.metadata["units"].startswith("gyro=deg/s")
     np.testing.assert_allclose(back["wz"], direct["wz"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["x.bin", "x.ulg", "x.blf", "x.asc", "x.log", "x.mcap", "x.db3", "x.bag",
+                                  "x.cap", "df.bin", "cut.blf", "cut.ulg"])
+def test_damaged_or_foreign_files_end_in_one_line_never_a_traceback(name: str, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    rng = np.random.default_rng(sum(map(ord, name)))
+    junk = rng.integers(0, 256, 6000, dtype=np.uint8).tobytes()
+    path = tmp_path / name
+    if name == "df.bin":
+        junk = b"\xa3\x95" + junk  # DataFlash's header, then garbage
+    elif name.startswith("cut."):  # a real recording cut in the middle
+        src = DATA / ("sim_can/virtual_unit.blf" if name.endswith(".blf")
+                      else "px4_ulog/sample_log_small.ulg")
+        junk = src.read_bytes()[: src.stat().st_size // 2]
+    elif name in ("x.asc", "x.log"):
+        junk = b"".join(b"line %d of something else\n" % i for i in range(50))
+    path.write_bytes(junk)
+    rc = main(["fit", str(path), "--terms", "1", "--all-samples"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    if rc != 0:
+        assert rc == 2 and err.startswith("gyrocal: error: ") and str(path.name) in err

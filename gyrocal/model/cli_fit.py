@@ -79,8 +79,12 @@ def load_terms(args: argparse.Namespace) -> list[str]:
 
 def no_data_error(log: LogData, name: str) -> ConfigError:
     """The real reason a log gave no usable rows: empty, header only, or every row dropped (and why)."""
-    if log.data_rows == 0 and not log.dropped:
-        return ConfigError(f"{name}: the log holds no data rows (only a header or metadata)")
+    if log.data_rows == 0:
+        if not log.dropped:
+            return ConfigError(f"{name}: the log holds no data rows (only a header or metadata)")
+        why = ", ".join(f"{v} {k}" for k, v in log.dropped.items())
+        return ConfigError(f"{name}: no sample could be decoded ({why}); is it the format its "
+                           "extension says? (--format, docs/logformat.md)")
     why = ", ".join(f"{v} {k}" for k, v in log.dropped.items()) or "no reason recorded"
     return ConfigError(f"{name}: all {log.data_rows} data rows were dropped ({why}); "
                        "nothing is left to fit (docs/logformat.md)")

@@ -40,7 +40,7 @@ class CanRecording:
         """Decoded unit messages (Sample, Hello, CoeffReport, ...) in the order of the file."""
         try:
             reader = self._can.LogReader(self.path)
-        except (ValueError, OSError) as err:  # unknown suffix, unreadable file
+        except Exception as err:  # unknown suffix, unreadable file, BLFParseError, ...
             raise LogFormatError(f"{self.path}: python-can cannot read it ({err})") from err
         accept, feed, counts = self.accept, self.decoder.feed, self.counts
         try:
@@ -54,7 +54,9 @@ class CanRecording:
                     counts["host_frames"] += 1
                 else:
                     yield from feed(frame)  # the decoder counts foreign frames itself
-        except (ValueError, OSError, EOFError) as err:
+        except Exception as err:  # python-can's readers raise their own errors on a damaged file
+            if isinstance(err, LogFormatError):
+                raise
             raise LogFormatError(f"{self.path}: python-can failed while reading it ({err})") from err
         finally:
             stop = getattr(reader, "stop", None)

@@ -28,7 +28,9 @@ def read_dataflash(path: str, options: ReadOptions) -> LogData:
     old_name = "IMU" if inst == 0 else f"IMU{inst + 1}"
     try:
         df = DFReader.DFReader_binary(path, zero_time_base=True)
-    except (OSError, ValueError, IndexError, KeyError) as err:
+    except OSError as err:
+        raise LogFormatError(f"{path}: cannot open the log ({err.strerror})") from err
+    except Exception as err:  # DFReader raises what its parsing hits on a damaged file
         raise LogFormatError(f"{path}: pymavlink cannot read it as a DataFlash log ({err})") from err
     rows: list[tuple[float, ...]] = []
     seen: set[int] = set()
@@ -36,7 +38,7 @@ def read_dataflash(path: str, options: ReadOptions) -> LogData:
     while True:
         try:
             m = df.recv_match(type=["IMU", old_name])
-        except (ValueError, IndexError, KeyError, TypeError) as err:
+        except Exception as err:  # as above
             raise LogFormatError(f"{path}: DataFlash record unreadable ({err})") from err
         if m is None:
             break

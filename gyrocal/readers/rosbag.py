@@ -43,11 +43,15 @@ def read_rosbag(path: str, options: ReadOptions) -> LogData:
         if topic not in topics:
             raise ConfigError(f"{path}: give --topic, one of {', '.join(topics)}")
         rows = []
-        for conn, _, raw in reader.messages(connections=[c for c in imus if c.topic == topic]):
-            m = reader.deserialize(raw, conn.msgtype)
-            st, w, a = m.header.stamp, m.angular_velocity, m.linear_acceleration
-            rows.append((st.sec + st.nanosec * 1e-9, w.x, w.y, w.z, a.x, a.y, a.z))
-            frame = m.header.frame_id
+        frame = ""
+        try:
+            for conn, _, raw in reader.messages(connections=[c for c in imus if c.topic == topic]):
+                m = reader.deserialize(raw, conn.msgtype)
+                st, w, a = m.header.stamp, m.angular_velocity, m.linear_acceleration
+                rows.append((st.sec + st.nanosec * 1e-9, w.x, w.y, w.z, a.x, a.y, a.z))
+                frame = m.header.frame_id
+        except Exception as err:  # rosbags raises per storage and serialisation
+            raise LogFormatError(f"{path}: message {len(rows) + 1} of {topic} unreadable ({err})") from err
         temps = [c for c in reader.connections if c.msgtype == TEMP]
         temp_t, temp_v = [], []
         if len(temps) == 1:

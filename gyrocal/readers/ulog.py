@@ -49,7 +49,9 @@ def read_ulog(path: str, options: ReadOptions) -> LogData:
     pyulog = require("pyulog", "reading PX4 .ulg logs")
     try:
         ulog = pyulog.ULog(path, ["sensor_gyro", "sensor_accel", "sensor_combined"])
-    except (OSError, ValueError, IndexError, KeyError) as err:
+    except OSError as err:
+        raise LogFormatError(f"{path}: cannot open the log ({err.strerror})") from err
+    except Exception as err:  # pyulog raises its own ULogException, and others on a damaged file
         raise LogFormatError(f"{path}: pyulog cannot read it as a ULog ({err})") from err
     inst = options.instance
     topic = options.topic
