@@ -82,6 +82,10 @@ def main(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, {"state_dir": state, "control_socket": str(Path(tmp) / "control.sock"),
                                         "watchdog": False})
         res = replay(rec, cfg, args.chunk_s)
+    if res["samples"] == 0:
+        why = ", ".join(f"{v} {k}" for k, v in res["dropped"].items()) or "it holds none"
+        raise ConfigError(f"{args.log}: no sample to replay ({why}); is it the format its extension "
+                          "says? (--format, docs/logformat.md)")
     _emit(args, res, _text(res))
     return 0
 
