@@ -95,6 +95,31 @@ class LogData:
         )
 
 
+_ALIASES = {
+    "t": ("time", "timestamp", "time_s", "t_s", "sec", "seconds"),
+    "w": ("gyro_{a}", "gyr_{a}", "gyro{a}", "gyr{a}", "g{a}", "omega_{a}", "rate_{a}", "w_{a}", "{a}_gyro",
+          "angular_velocity_{a}", "angular_velocity.{a}", "gyr{A}", "Gyr{A}", "gyro_{A}"),
+    "a": ("acc_{a}", "accel_{a}", "acc{a}", "accel{a}", "a_{a}", "{a}_acc", "{a}_accel",
+          "linear_acceleration_{a}", "linear_acceleration.{a}", "acc{A}", "Acc{A}", "accel_{A}"),
+}
+
+
+def suggest_columns(missing: list[str], header: list[str]) -> str:
+    """A ``--columns`` guess for the missing columns from common names (gyro_x, acc_x, time, ...)."""
+    lower = {h.lower(): h for h in header}
+    out = []
+    for col in missing:
+        if col == "t":
+            names = _ALIASES["t"]
+        else:
+            kind, axis = col[0], col[1]
+            names = tuple(n.format(a=axis, A=axis.upper()) for n in _ALIASES[kind])
+        hit = next((lower[n.lower()] for n in names if n.lower() in lower), None)
+        if hit is not None:
+            out.append(f"{col}={hit}")
+    return ",".join(out)
+
+
 def _parse_float(text: str, path: str, line: int, column: str) -> float:
     try:
         return float(text)
@@ -152,10 +177,11 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
             header = [back.get(h, h) for h in header]
         missing = [c for c in REQUIRED if c not in header]
         if missing:
+            hint = suggest_columns(missing, header)
             raise LogFormatError(
                 f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
-                f"header; a log needs {', '.join(REQUIRED)} (map other names with --columns, "
-                "see docs/logformat.md)"
+                f"header; a log needs {', '.join(REQUIRED)} (map other names with --columns"
+                + (f", perhaps --columns {hint}" if hint else "") + "; see docs/logformat.md)"
             )
         if len(set(header)) != len(header):
             raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")

@@ -91,6 +91,16 @@ def test_bad_column_map_and_units_name_the_fix(dps_log: Path) -> None:
         detect_kind("x.xyz")
 
 
+def test_missing_columns_come_with_a_column_map_to_try(tmp_path: Path) -> None:
+    path = tmp_path / "other.csv"
+    path.write_text("timestamp,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z\n0,0,0,0,0,0,1\n")
+    hint = "t=timestamp,wx=gyro_x,wy=gyro_y,wz=gyro_z,ax=acc_x,ay=acc_y,az=acc_z"
+    with pytest.raises(LogFormatError, match=f"perhaps --columns {hint}"):
+        read_any(path)
+    log = read_any(path, options=ReadOptions(columns=dict(p.split("=") for p in hint.split(","))))
+    assert len(log) == 1 and log["az"][0] == 1.0
+
+
 def test_text_columns_of_a_foreign_csv_are_left_out_with_a_warning(tmp_path: Path) -> None:
     path = tmp_path / "foreign.csv"
     path.write_text("t,frame,wx,wy,wz,ax,ay,az,note\n" + "".join(
