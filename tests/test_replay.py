@@ -134,6 +134,21 @@ def test_a_converted_can_log_keeps_the_applied_set_for_replay(tmp_path: Path) ->
     assert rec.first_report == direct.first_report and rec.first_report.version == 3
 
 
+def test_a_capture_without_hello_gets_an_anonymous_unit(tmp_path: Path) -> None:
+    from gyrocal.protocol.messages import Sample
+    from gyrocal.protocol.serial_framing import encode_frame
+
+    c = SessionStream(TruthModel(), tumble(1.2, 0.4), 200.0, seed=9, boot=0).chunk(1500)
+    cap = tmp_path / "late.cap"  # the logger started after the unit's switch-on: no HELLO recorded
+    cap.write_bytes(b"".join(encode_frame(Sample(5000 + i, 25.0 + float(c["t"][i]),
+                                                 (c["wx"][i], c["wy"][i], c["wz"][i]),
+                                                 (c["ax"][i], c["ay"][i], c["az"][i]), float(c["temp"][i])))
+                             for i in range(1500)))
+    res = replay(open_recording(str(cap)), _cfg(tmp_path))
+    assert res["hello_synthesized"] and len(res["sessions"]) == 1
+    assert res["sessions"][0]["unit"]["serial"] == 0 and res["sessions"][0]["samples"] > 0
+
+
 def test_replay_cli_writes_json_and_text(sim_log: Path, tmp_path: Path,
                                          capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "r.json"

@@ -125,6 +125,7 @@ class Replay:
                                             **({"nonfinite": eng.dropped_nonfinite} if eng.dropped_nonfinite
                                                else {})},
             "samples_before_hello": eng.samples_before_hello, "sessions_started": eng.sessions_started,
+            "hello_synthesized": link.unit.synthesized_hello,
             "replayed_s": round(duration, 3), "wall_s": round(self.wall_s, 3),
             "samples_per_s": round(samples / self.wall_s, 1) if self.wall_s > 0 else None,
             "sessions": sessions, "validations": self.validations, "pushes": pushes,

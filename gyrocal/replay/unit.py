@@ -3,7 +3,8 @@
 The recording fixes what the unit *measured*; it cannot say what the unit would have sent had it
 received our COEFF_WRITE. We answer as a unit of the protocol would (docs/protocol.md):
 
-- HELLO_REQUEST: the recording's HELLO (the current switch-on's, else the first one recorded);
+- HELLO_REQUEST: the recording's HELLO (the current switch-on's, else the first one recorded; a
+  recording with none, started after the switch-on, gets an anonymous HELLO: serial 0, boot 0);
 - COEFF_READ: COEFF_REPORT of the set the unit holds: the recording's (its first COEFF_REPORT, or
   an empty set when the recording never shows one: a log of uncompensated output), or ours once we
   pushed one;
@@ -54,6 +55,7 @@ class ReplayUnit:
         self.ours: AppliedSet | None = None  # None: nothing pushed in this replay, the recorded set holds
         self._ours_msg: CoeffReport | None = None
         self.pushes: list[dict[str, Any]] = []
+        self.synthesized_hello = False
         self.unit_time_s = 0.0
         self._t0: float | None = None
         self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)
@@ -79,7 +81,10 @@ class ReplayUnit:
     def answer(self, msg: Any) -> list[Any]:
         """What the unit sends back to a host message (possibly nothing)."""
         if isinstance(msg, HelloRequest):
-            return [self.hello] if self.hello is not None else []
+            if self.hello is None:  # recorded after the switch-on, never told who it is: an anonymous unit
+                self.hello = Hello(0, "0.0.0", 0)
+                self.synthesized_hello = True
+            return [self.hello]
         if isinstance(msg, CoeffRead):
             return [self._ours_msg if self._ours_msg is not None else self._recorded_msg]
         if isinstance(msg, CoeffWrite):
