@@ -130,6 +130,49 @@ def _parse_float(text: str, path: str, line: int, column: str) -> float:
         ) from None
 
 
+def read_header(fh: Iterable[str], name: str, rename: Mapping[str, str] | None = None,
+                ) -> tuple[dict[str, str], list[str], int]:
+    """Read the ``#`` metadata and the header row of an open CSV log, leaving ``fh`` at the first
+    data row; returns (metadata, header in our column names, the header's line number)."""
+    metadata: dict[str, str] = {}
+    lines = iter(enumerate(fh, start=1))
+    header: list[str] | None = None
+    header_line = 0
+    for lineno, raw in lines:
+        text = raw.strip()
+        if not text:
+            continue
+        if text.startswith("#"):
+            body = text[1:].strip()
+            if ":" in body:
+                key, value = body.split(":", 1)
+                metadata[key.strip()] = value.strip()
+            continue
+        header = [h.strip() for h in next(csv.reader([text]))]
+        header_line = lineno
+        break
+    if header is None:
+        raise LogFormatError(f"{name}: no header row; the first non-# line must name the columns")
+    if rename:
+        absent = [f"{ours}={theirs}" for ours, theirs in rename.items() if theirs not in header]
+        if absent:
+            raise LogFormatError(f"{name}:{header_line}: --columns {', '.join(absent)}: no such column "
+                                 f"in the header ({', '.join(header)})")
+        back = {theirs: ours for ours, theirs in rename.items()}
+        header = [back.get(h, h) for h in header]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        hint = suggest_columns(missing, header)
+        raise LogFormatError(
+            f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
+            f"header; a log needs {', '.join(REQUIRED)} (map other names with --columns"
+            + (f", perhaps --columns {hint}" if hint else "") + "; see docs/logformat.md)"
+        )
+    if len(set(header)) != len(header):
+        raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
+    return metadata, header, header_line
+
+
 def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
              units: Mapping[str, str] | None = None) -> LogData:
     """Read a CSV log, rejecting a malformed file and skipping non-finite rows.
@@ -148,43 +191,8 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
         fh = p.open(newline="", encoding="utf-8")
     except OSError as err:
         raise LogFormatError(f"{name}: cannot open the log ({err.strerror})") from err
-    metadata: dict[str, str] = {}
     with fh:
-        lines = iter(enumerate(fh, start=1))
-        header: list[str] | None = None
-        header_line = 0
-        for lineno, raw in lines:
-            text = raw.strip()
-            if not text:
-                continue
-            if text.startswith("#"):
-                body = text[1:].strip()
-                if ":" in body:
-                    key, value = body.split(":", 1)
-                    metadata[key.strip()] = value.strip()
-                continue
-            header = [h.strip() for h in next(csv.reader([text]))]
-            header_line = lineno
-            break
-        if header is None:
-            raise LogFormatError(f"{name}: no header row; the first non-# line must name the columns")
-        if rename:
-            absent = [f"{ours}={theirs}" for ours, theirs in rename.items() if theirs not in header]
-            if absent:
-                raise LogFormatError(f"{name}:{header_line}: --columns {', '.join(absent)}: no such column "
-                                     f"in the header ({', '.join(header)})")
-            back = {theirs: ours for ours, theirs in rename.items()}
-            header = [back.get(h, h) for h in header]
-        missing = [c for c in REQUIRED if c not in header]
-        if missing:
-            hint = suggest_columns(missing, header)
-            raise LogFormatError(
-                f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
-                f"header; a log needs {', '.join(REQUIRED)} (map other names with --columns"
-                + (f", perhaps --columns {hint}" if hint else "") + "; see docs/logformat.md)"
-            )
-        if len(set(header)) != len(header):
-            raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
+        metadata, header, header_line = read_header(fh, name, rename)
         width = len(header)
         rest = fh.read()
     keep, ignored = _numeric_columns(rest, header)

@@ -14,7 +14,7 @@ from gyrocal.cli import main
 from gyrocal.daemon.config import load_config
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.drivers import open_link
-from gyrocal.errors import ConfigError
+from gyrocal.errors import ConfigError, LogFormatError
 from gyrocal.logformat import write_log
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, Hello, HelloRequest
 from gyrocal.replay.run import replay
@@ -238,3 +238,30 @@ def test_bus_player_feeds_a_can_link_and_answers_it(sim_log: Path) -> None:
         player.join(10)
     assert ring.pushed >= 200 and isinstance(got[0], Hello) and got[0].serial == 31
     assert any(isinstance(m, CoeffReport) for m in got) and result["answers"] >= 1
+
+
+@pytest.mark.slow
+def test_a_csv_is_streamed_block_by_block_with_the_same_result(sim_log: Path, tmp_path: Path) -> None:
+    from gyrocal.logformat import read_log
+    from gyrocal.readers.csvstream import CsvStream
+    from gyrocal.replay.source import Recording
+
+    text = sim_log.read_text().splitlines()
+    text[500] = ",".join(["nan"] * len(text[500].split(",")))  # a NaN row in the first block
+    path = tmp_path / "nan.csv"
+    path.write_text("\n".join(text) + "\n")
+    whole = read_log(path)
+    stream = CsvStream(str(path), block_rows=1000)
+    blocks = list(stream.blocks())
+    for c in ("t", "wx", "az", "temp", "session"):
+        np.testing.assert_array_equal(np.concatenate([b[c] for b in blocks]), whole[c])
+    assert stream.dropped == {"nonfinite": 1} == whole.dropped
+    streamed = replay(open_recording(str(path)), _cfg(tmp_path))
+    held = replay(Recording(str(path), "csv", log=whole), _cfg(tmp_path))
+    for key in ("decisions", "validations", "pushes", "samples", "dropped"):
+        assert streamed[key] == held[key], key
+    bad = tmp_path / "back.csv"
+    rows = ["t,wx,wy,wz,ax,ay,az"] + [f"{i / 100},0,0,0,0,0,1" for i in range(30)] + ["0.05,0,0,0,0,0,1"]
+    bad.write_text("\n".join(rows) + "\n")
+    with pytest.raises(LogFormatError, match="goes backwards"):
+        list(CsvStream(str(bad), block_rows=30).blocks())

@@ -53,9 +53,9 @@ def main(args: argparse.Namespace) -> int:
     if args.chunk_s <= 0 or args.speed <= 0:
         raise ConfigError("--chunk-s and --speed must be > 0")
     rec = open_recording(args.log, args.format, options_from_args(args))
-    if rec.log is not None:
-        for w in rec.log.warnings:
-            print(f"gyrocal: warning: {w}", file=sys.stderr)
+    for w in rec.warnings:  # a streamed CSV's come after the replay
+        print(f"gyrocal: warning: {w}", file=sys.stderr)
+    shown = len(rec.warnings)
     if args.pty or args.bus:
         from gyrocal.replay.pty_player import play_bus, play_pty
 
@@ -82,6 +82,8 @@ def main(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, {"state_dir": state, "control_socket": str(Path(tmp) / "control.sock"),
                                         "watchdog": False})
         res = replay(rec, cfg, args.chunk_s)
+    for w in rec.warnings[shown:]:
+        print(f"gyrocal: warning: {w}", file=sys.stderr)
     if res["samples"] == 0:
         why = ", ".join(f"{v} {k}" for k, v in res["dropped"].items()) or "it holds none"
         raise ConfigError(f"{args.log}: no sample to replay ({why}); is it the format its extension "

@@ -54,12 +54,23 @@ class Recording:
     first_hello: Hello | None = None
     first_report: CoeffReport | None = None
     log: LogData | None = None
+    stream: Any = None  # a readers.csvstream.CsvStream: a CSV read block by block
     counts: dict[str, int] = field(default_factory=dict)
     _messages: Any = None
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the reader noticed (complete for a streamed CSV once ``events()`` has run)."""
+        if self.log is not None:
+            return list(self.log.warnings)
+        return list(self.stream.warnings) if self.stream is not None else []
 
     def events(self) -> Iterator[Event]:
         if self.log is not None:
             yield from _log_events(self.log)
+            return
+        if self.stream is not None:
+            yield from _stream_events(self.stream)
             return
         rec = self._messages()
         pending: list[Sample] = []
@@ -83,6 +94,8 @@ class Recording:
         """What the decoders (or the reader) left out, by reason."""
         if self.log is not None:
             return dict(self.log.dropped)
+        if self.stream is not None:
+            return dict(self.stream.dropped)
         return {k: v for k, v in self.counts.items() if k not in ("frames", "bytes", "foreign_frames",
                                                                  "host_frames")}
 
@@ -101,6 +114,11 @@ def open_recording(path: str, kind: str | None = None, options: ReadOptions | No
 
         def make() -> Any:
             return SerialRecording(path)
+    elif kind == "csv":  # block by block: a long log never sits in memory whole
+        from gyrocal.readers.csvstream import CsvStream
+
+        stream = CsvStream(path, options.columns or None, options.units or None)
+        return Recording(path, kind, stream=stream, first_report=applied_from_metadata(stream.metadata, path))
     else:
         log = read_any(path, kind, options)
         return Recording(path, kind, log=log, first_report=applied_from_metadata(log.metadata, path))
@@ -131,6 +149,44 @@ def applied_from_metadata(meta: dict[str, str], where: str) -> CoeffReport | Non
 
 def _fw(text: str) -> str:
     return text if re.fullmatch(r"\d{1,3}\.\d{1,3}\.\d{1,3}", text or "") else "0.0.0"
+
+
+def _hello(meta: dict[str, str], k: int, t: np.ndarray) -> Hello:
+    """The HELLO of a sample log's k-th session (identity from the metadata when it has one)."""
+    serial = int(meta["unit_serial"]) if meta.get("unit_serial", "").isdigit() else 0
+    boot0 = int(meta["boot_count"]) if meta.get("boot_count", "").isdigit() else 0
+    dt = float(np.median(np.diff(t))) if t.size > 2 else 0.0
+    rate = 1.0 / dt if dt > 0 else 0.0
+    return Hello(serial & 0xFFFFFFFF, _fw(meta.get("firmware", "")), (boot0 + k) & 0xFFFF,
+                 int(min(round(rate), 65535)))
+
+
+def _block(cols: dict[str, np.ndarray], i0: int, i1: int, seq0: int) -> np.ndarray:
+    b = np.zeros(i1 - i0, dtype=SAMPLE_DTYPE)
+    b["seq"] = np.arange(seq0, seq0 + i1 - i0)
+    for c in ("t", "wx", "wy", "wz", "ax", "ay", "az"):
+        b[c] = cols[c][i0:i1]
+    b["temp"] = cols["temp"][i0:i1] if "temp" in cols else 25.0
+    return b
+
+
+def _stream_events(stream: Any) -> Iterator[Event]:
+    """Events of a CSV read block by block: a HELLO where ``session`` changes, then its samples."""
+    session: float | None = None
+    k, seq = -1, 0
+    for cols in stream.blocks():
+        s = cols["session"]
+        cuts = np.flatnonzero(np.diff(s) != 0) + 1
+        for i0, i1 in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [s.size])), strict=True):
+            if i1 <= i0:
+                continue
+            if session is None or s[i0] != session:
+                session, k, seq = float(s[i0]), k + 1, 0
+                yield "msg", _hello(stream.metadata, k, cols["t"][i0:i1])
+            for j0 in range(i0, i1, BLOCK):
+                j1 = min(j0 + BLOCK, i1)
+                yield "samples", _block(cols, j0, j1, seq)
+                seq += j1 - j0
 
 
 def _log_events(log: LogData) -> Iterator[Event]:

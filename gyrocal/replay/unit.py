@@ -81,10 +81,11 @@ class ReplayUnit:
     def answer(self, msg: Any) -> list[Any]:
         """What the unit sends back to a host message (possibly nothing)."""
         if isinstance(msg, HelloRequest):
-            if self.hello is None:  # recorded after the switch-on, never told who it is: an anonymous unit
+            if self.hello is None and self._t0 is not None:
+                # samples came first: recorded after the switch-on, no HELLO to come. An anonymous unit
                 self.hello = Hello(0, "0.0.0", 0)
                 self.synthesized_hello = True
-            return [self.hello]
+            return [self.hello] if self.hello is not None else []
         if isinstance(msg, CoeffRead):
             return [self._ours_msg if self._ours_msg is not None else self._recorded_msg]
         if isinstance(msg, CoeffWrite):
