@@ -72,7 +72,7 @@ class Replay:
         self._note(engine)
         if self.link.pump():
             return False
-        if len(engine.ring) or not engine.inbox.empty() or engine._held:
+        if len(engine.ring) or not engine.inbox.empty() or engine._pending:
             return False
         s = engine.session
         busy = s is not None and (s.push is not None or s.applied is None)
