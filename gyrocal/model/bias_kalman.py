@@ -151,7 +151,9 @@ class BiasKalman(Estimator):
     Args (beyond the Estimator's):
         bias: the intensities (``BiasModel.from_spec``); all zero makes it a Kalman form of RLS.
         dt_s: sample interval [s] used when no time stamps are given.
-        prior_sigma_dps: prior 1-sigma of every weight [deg/s per unit z]; large, so the data decides.
+        prior_sigma_dps: prior 1-sigma of every weight [deg/s per unit z]. The data decides whatever it
+            is (the prior weighs like R / prior^2 samples, ~1e-5 of one sample), but the larger it is
+            the worse P is conditioned; 1 deg/s covers tactical and consumer MEMS drift.
         noise0_dps: start of the on-line white-noise estimate when bias.noise_dps is None [deg/s].
         noise_window: samples over which the white-noise estimate averages.
     """
@@ -159,7 +161,7 @@ class BiasKalman(Estimator):
     method = "kf"
 
     def __init__(self, terms: Sequence[str] | TermSpec = SEED000_TERMS, *,
-                 bias: BiasModel | Mapping | None = None, dt_s: float = 0.01, prior_sigma_dps: float = 10.0,
+                 bias: BiasModel | Mapping | None = None, dt_s: float = 0.01, prior_sigma_dps: float = 1.0,
                  noise0_dps: float = 0.01, noise_window: int = 2000, **kw: Any) -> None:
         super().__init__(terms, **kw)
         if isinstance(bias, Mapping):
