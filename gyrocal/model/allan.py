@@ -253,7 +253,9 @@ def fit_noise_terms(curve: AllanCurve, max_tau_s: float | None = None) -> NoiseT
     walk rising out of a flicker floor) it reads the sum; the joint fit does not. Weighted
     non-negative least squares on the Allan variance with weights edf / (2 sigma^4) (the variance
     of an Allan variance estimate is 2 sigma^4 / edf); 1-sigma intervals from the fit's covariance
-    (delta method on the square root; a term at 0 gets [0, its 1-sigma]).
+    (delta method on the square root; a term at 0 gets [0, its 1-sigma]). The overlapping taus are
+    treated as independent, so the intervals are optimistic, most for K: on a 4 h log of a walk
+    under a flicker floor the fitted K scatters about +-50 % between axes (tests/test_model_allan).
     """
     from scipy.optimize import nnls
 
