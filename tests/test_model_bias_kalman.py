@@ -161,3 +161,26 @@ def test_spec_from_analyze_and_bias_instability_conversion() -> None:
         BiasModel.from_spec({"gauss_markov": {"sigma_dps": 1e-3}}, "OUT.terms.yaml")
     with pytest.raises(ConfigError, match="random_walk.dps_per_sqrt_s"):
         BiasModel.from_spec({"random_walk": {"dps_per_sqrt_s": {"x": -1}}}, "f.yaml")
+
+
+def test_daemon_config_kf_loads_the_intensities_from_the_terms_file(tmp_path) -> None:
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.learner import make_learner
+
+    (tmp_path / "out.terms.yaml").write_text(
+        "terms: ['1', gx, gy, gz]\n"
+        "random_walk: {dps_per_sqrt_s: {x: 1.0e-4, y: 2.0e-4, z: 0.0}, knot_s: 30}\n"
+        "noise_dps: {x: 0.01, y: 0.01, z: 0.01}\n", encoding="utf-8")
+    cfg_path = tmp_path / "kf.yaml"
+    cfg_path.write_text("virtual_unit: {enabled: true}\nestimator: {method: kf, terms: out.terms.yaml}\n",
+                        encoding="utf-8")
+    learner = make_learner(load_config(cfg_path), None)
+    assert isinstance(learner.est, BiasKalman)
+    np.testing.assert_allclose(learner.est.bias.random_walk_dps_per_sqrt_s, [1e-4, 2e-4, 0.0])
+    phi = np.column_stack([np.ones(50), np.zeros(50), np.zeros(50), np.ones(50)])
+    learner.update_many(phi, np.full((50, 3), 0.01), np.arange(50) * 0.01)
+    assert learner.est.kf_t == pytest.approx(0.49)
+    (tmp_path / "out.terms.yaml").write_text("terms: ['1']\nrandom_walk: {dps_per_sqrt_s: {x: -1}}\n",
+                                             encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"out.terms.yaml: field 'random_walk.dps_per_sqrt_s'"):
+        load_config(cfg_path)

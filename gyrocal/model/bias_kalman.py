@@ -37,9 +37,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from gyrocal.errors import ConfigError
 from gyrocal.model.allan import FLICKER_FLOOR
@@ -132,6 +134,26 @@ class BiasModel:
         if doc.get("noise_dps") is not None:
             m.noise_dps = _axes(doc["noise_dps"], source, "noise_dps", positive=True)
         return m
+
+
+def load_bias_spec(terms: Any, config_path: str | Path) -> BiasModel:
+    """The bias intensities for a daemon config's ``estimator.terms``: read from the terms file.
+
+    ``gyrocal analyze --out OUT`` writes OUT.terms.yaml with ``terms`` and the bias blocks, so naming
+    that file as the estimator's terms brings both. ``seed000`` or an inline list: no bias states
+    (the filter is then a Kalman form of RLS). A relative path is taken from the config's directory.
+    """
+    if not isinstance(terms, str) or terms == "seed000":
+        return BiasModel()
+    path = Path(terms)
+    if not path.is_absolute():
+        path = Path(config_path).parent / path
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"{path}: cannot read the bias spec ({err}); name the terms file "
+                          "`gyrocal analyze` wrote") from None
+    return BiasModel.from_spec(doc if isinstance(doc, Mapping) else {}, str(path))
 
 
 def _axes(v: Any, source: str, name: str, positive: bool = False) -> np.ndarray:
