@@ -144,6 +144,78 @@ def run_one(model: TruthModel, seed: int, session_s: float, after_s: float, spec
     return out
 
 
+def run_daemon(method: str, model_case: str, seed: int, after_s: float, work: Path, spec: dict,
+               timeout_s: float = 900.0) -> dict:
+    """End to end: ``gyrocal run`` on a virtual unit with the case's noise (``gyrocal sim --noise``),
+    until its first push is acked plus ``after_s``; the drift left is read from the unit's truth record
+    (drift_w - comp_w, what the unit really subtracted), dwell means after the push [deg/h]."""
+    import os
+    import signal
+    import subprocess
+
+    import yaml
+
+    work.mkdir(parents=True, exist_ok=True)
+    c = CASES[model_case]
+    rec = work / "unit.csv"
+    band = f"{FLICKER_BAND_S[0]},{FLICKER_BAND_S[1]}"
+    noise = ["--noise", f"noise_dps={NOISE_DPS}", "--noise", f"flicker_band_s={band}",
+             "--noise", f"random_walk_dps_per_sqrt_s={c['random_walk_dps_per_sqrt_s']}",
+             "--noise", f"bias_instability_dps={c['bias_instability_dps']}"]
+    terms: object = "seed000"
+    if method == "kf":
+        (work / "spec.terms.yaml").write_text(yaml.safe_dump({"terms": list(SEED000_TERMS), **spec}),
+                                              encoding="utf-8")
+        terms = "spec.terms.yaml"
+    cfg = {"virtual_unit": {"enabled": True, "rate_hz": RATE_HZ, "seed": seed,
+                            "extra_args": [*noise, "--record", str(rec)]},
+           # this unit's noise (0.05 deg/s per sample) needs ~25,000 rests' samples for 1e-3 deg/s
+           "estimator": {"method": method, "terms": terms,
+                         "convergence": {"max_change_dps": 2e-3, "max_sigma_dps": 1e-3, "window": 5000}},
+           "still": {"gyro_std_dps": 4 * NOISE_DPS},   # the detector's default 0.05 is this unit's noise
+           "state_dir": str(work / "state"), "control_socket": str(work / "control.sock")}
+    (work / "config.yaml").write_text(yaml.safe_dump(cfg), encoding="utf-8")
+    cli = [sys.executable, "-m", "gyrocal.cli"]
+    log = open(work / "daemon.log", "w")  # noqa: SIM115 (closed below)
+    proc = subprocess.Popen([*cli, "run", "--config", str(work / "config.yaml")], stdout=subprocess.DEVNULL,
+                            stderr=log, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    pushed_at = None
+    t0 = time.monotonic()
+    try:
+        while time.monotonic() - t0 < timeout_s:
+            time.sleep(5.0)
+            r = subprocess.run([*cli, "status", "--json", "--socket", str(work / "control.sock")],
+                               capture_output=True, text=True, timeout=30)
+            st = json.loads(r.stdout) if r.returncode == 0 and r.stdout.strip() else {}
+            if pushed_at is None and (st.get("last_push") or {}).get("status") == "acked":
+                pushed_at = time.monotonic()
+            if pushed_at is not None and time.monotonic() - pushed_at >= after_s:
+                break
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+    if pushed_at is None:
+        return {"pushed": False, "wall_s": time.monotonic() - t0}
+    d = np.genfromtxt(work / "unit.truth.csv", delimiter=",", names=True, comments="#")
+    comp = np.column_stack([d[f"comp_w{a}"] for a in "xyz"])
+    changed = np.flatnonzero(np.any(comp != comp[0], axis=1))
+    if changed.size == 0:
+        return {"pushed": True, "applied": False}
+    after = np.arange(d.size) >= changed[0]
+    st_ = after & (d["still"] > 0.5)
+    left = (np.column_stack([d[f"drift_w{a}"] for a in "xyz"]) - comp)[st_]
+    dwell = segment_ids(st_)[st_]
+    n = np.bincount(dwell)
+    mean = np.column_stack([np.bincount(dwell, weights=left[:, k]) / n for k in range(3)])
+    return {"pushed": True, "applied": True, "push_t_s": float(d["t"][changed[0]]),
+            "after_s": float(d["t"][-1] - d["t"][changed[0]]),
+            "after_dph": float(np.sqrt(np.mean(mean**2)) * 3600)}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print the figures as one JSON object")
@@ -153,7 +225,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--after", type=float, default=600.0, metavar="S", help="window after the push [s]")
     ap.add_argument("--still-log", type=float, default=14400.0, metavar="S",
                     help="length of the still recording the spec is read from [s] (default 14400)")
+    ap.add_argument("--daemon", action="store_true",
+                    help="end to end: the daemon with rls and with kf on a walk+flicker virtual unit")
+    ap.add_argument("--work", default="out/bench_bias_state", help="work directory of --daemon")
     args = ap.parse_args(argv)
+    if args.daemon:
+        model = unit("walk+flicker")
+        spec, shown = spec_from_still_log(model, 0, 3600.0 if args.quick else args.still_log)
+        seeds = range(1 if args.quick else min(args.seeds, 3))
+        out: dict = {"case": "walk+flicker", "after_s": args.after, "spec": spec, "runs": {}}
+        for s in seeds:
+            for method in ("rls", "kf"):
+                work = Path(args.work) / f"{method}-{s}"
+                r = run_daemon(method, "walk+flicker", s + 1, args.after, work, spec)
+                out["runs"][f"{method}-seed{s + 1}"] = r
+                if not args.json:
+                    print(method, s + 1, r, flush=True)
+        print(json.dumps(out, indent=1) if args.json else "")
+        return 0
     cases = list(CASES)
     if args.quick:
         args.seeds, args.session, args.after, args.still_log = 2, 600.0, 300.0, 3600.0
