@@ -182,7 +182,7 @@ def run_daemon(method: str, model_case: str, seed: int, after_s: float, work: Pa
     pushed_at = None
     t0 = time.monotonic()
     try:
-        while time.monotonic() - t0 < timeout_s:
+        while time.monotonic() - t0 < timeout_s and proc.poll() is None:
             time.sleep(5.0)
             r = subprocess.run([*cli, "status", "--json", "--socket", str(work / "control.sock")],
                                capture_output=True, text=True, timeout=30)

@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import lfilter
 
 from gyrocal.errors import ConfigError
 from gyrocal.model.allan import FLICKER_FLOOR, gauss_markov_avar
@@ -274,6 +273,13 @@ class SessionStream:
             cols[f"drift_w{a}"] = drift[:, k]
             cols[f"g{a}"] = g[:, k]
         return cols
+
+
+def lfilter(b, a, x, axis, zi):
+    """scipy.signal.lfilter, imported on first use: the baseline simulator starts without scipy."""
+    from scipy.signal import lfilter as _lfilter
+
+    return _lfilter(b, a, x, axis=axis, zi=zi)
 
 
 class _NoiseState:
