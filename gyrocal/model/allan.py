@@ -173,7 +173,7 @@ def noise_alpha(y: np.ndarray, m: int, default: int = 0) -> int:
 def chi2_interval(dev: np.ndarray, edf: np.ndarray,
                   ci: float = ONE_SIGMA_CI) -> tuple[np.ndarray, np.ndarray]:
     """Interval of a deviation with ``edf`` degrees of freedom at confidence ci (SP 1065 eq. 45)."""
-    from scipy import stats  # lazy: the simulator imports this module and must start fast
+    from scipy import stats  # lazy: the simulator imports this module, fast and on a lean install (no scipy)
 
     p = (1.0 - ci) / 2.0
     dev, edf = np.asarray(dev, dtype=np.float64), np.asarray(edf, dtype=np.float64)

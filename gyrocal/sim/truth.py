@@ -275,13 +275,6 @@ class SessionStream:
         return cols
 
 
-def lfilter(b, a, x, axis, zi):
-    """scipy.signal.lfilter, imported on first use: the baseline simulator starts without scipy."""
-    from scipy.signal import lfilter as _lfilter
-
-    return _lfilter(b, a, x, axis=axis, zi=zi)
-
-
 class _NoiseState:
     """The carried states of the coloured, flicker and filter noise of one session (all exact
     discretisations at the sample interval, so chunking never changes the stream)."""
@@ -311,6 +304,8 @@ class _NoiseState:
         """The bias-instability part of the drift for the next n samples, (n, 3) [deg/s]."""
         if not np.any(self.bi != 0):
             return 0.0
+        from scipy.signal import lfilter  # lazy: the default (noise-free) unit runs on a lean install
+
         w = self.rng_fl.normal(0.0, 1.0, (n, *self.fl_sig.shape))
         out = np.zeros((n, 3))
         for k, phi in enumerate(self.fl_phi):
@@ -323,6 +318,10 @@ class _NoiseState:
     def coloured(self, white: np.ndarray) -> np.ndarray:
         """White noise (n, 3) [deg/s] through the sensor filter, plus the Gauss-Markov noise."""
         out = white
+        if self.lp_a <= 0 and not np.any(self.gm != 0):
+            return out
+        from scipy.signal import lfilter  # lazy: the default (noise-free) unit runs on a lean install
+
         if self.lp_a > 0:
             a = self.lp_a
             out = lfilter([a], [1.0, a - 1.0], white, axis=0, zi=((1 - a) * self.lp_y)[None, :])[0]
