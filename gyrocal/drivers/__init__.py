@@ -28,6 +28,7 @@ LINKS: dict[str, tuple[str, str]] = {
     "serial": ("gyrocal.drivers.serial_link", "SerialLink"),
     "can": ("gyrocal.drivers.can_link", "CanLink"),
     "mavlink": ("gyrocal.mavlink.link", "MavlinkLink"),
+    "replay": ("gyrocal.replay.link", "ReplayLink"),
 }
 """Link kinds -> (module, class), imported on first use."""
 
@@ -75,6 +76,10 @@ def open_link(
         from gyrocal.mavlink.config import mavlink_link
 
         link = mavlink_link(where, rest, ring, on_control, on_event, common)
+    elif kind == "replay":  # a recording played as the unit (gyrocal/replay/link.py)
+        from gyrocal.replay.link import from_config
+
+        link = from_config(where, rest, ring, on_control, on_event, common)
     else:
         link = _can(where, rest, ring, on_control, on_event, common)
     if start:
