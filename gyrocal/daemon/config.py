@@ -31,6 +31,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
         "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}; "
                 "interface/channel left out come from python-can's config (CAN_INTERFACE, ~/.canrc)"),
+        "mavlink": ((dict,), {}, "write MAVLink link options, e.g. {autopilot: px4} (docs/mavlink.md)"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
     },
     "virtual_unit": {
@@ -242,8 +243,8 @@ def _fail(name: str, dotted: str, value: Any, fix: str) -> None:
 
 def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     link, est, val = s["link"], s["estimator"], s["validation"]
-    if link["kind"] not in ("serial", "can"):
-        _fail(name, "link.kind", link["kind"], "write `serial` or `can`")
+    if link["kind"] not in ("serial", "can", "mavlink"):
+        _fail(name, "link.kind", link["kind"], "write `serial` or `can` (or `mavlink` for an autopilot)")
     if link["kind"] == "can" and not s["virtual_unit"]["enabled"]:
         from gyrocal.drivers.can_defaults import with_python_can_defaults
 

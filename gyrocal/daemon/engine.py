@@ -132,6 +132,10 @@ class Engine(CommandsMixin):
         backoff = {"backoff_max_s": min(float(c.get("reconnect_max_s", RECONNECT_MAX_S)), RECONNECT_MAX_S)}
         if c["kind"] == "can":
             return {"kind": "can", "bus": dict(c["can"]), **backoff}
+        if c["kind"] == "mavlink":  # options under link.mavlink; docs/mavlink.md
+            mav = {"state_file": str(self.cfg.state_dir / "mavlink.json"), **dict(c.get("mavlink") or {})}
+            return {"kind": "mavlink", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **mav,
+                    **backoff}
         return {"kind": "serial", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **backoff}
 
     def open(self, wait: bool = True) -> None:

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 LINKS: dict[str, tuple[str, str]] = {
     "serial": ("gyrocal.drivers.serial_link", "SerialLink"),
     "can": ("gyrocal.drivers.can_link", "CanLink"),
+    "mavlink": ("gyrocal.mavlink.link", "MavlinkLink"),
     "replay": ("gyrocal.replay.link", "ReplayLink"),
 }
 """Link kinds -> (module, class), imported on first use."""
@@ -65,12 +66,16 @@ def open_link(
         raise ConfigError(f"{where}: must be a mapping with a 'kind' field (serial or can)")
     kind = cfg.get("kind", cfg.get("type"))
     if kind not in LINKS:
-        raise ConfigError(f"{where}: field 'kind' is {kind!r}; write 'serial' or 'can'")
+        raise ConfigError(f"{where}: field 'kind' is {kind!r}; write one of {', '.join(LINKS)}")
     rest = {k: v for k, v in cfg.items() if k not in ("kind", "type")}
     common = {k: _seconds(where, k, rest.pop(k)) for k in _COMMON if k in rest}
     link: Link
     if kind == "serial":
         link = _serial(where, rest, ring, on_control, on_event, common)
+    elif kind == "mavlink":
+        from gyrocal.mavlink.config import mavlink_link
+
+        link = mavlink_link(where, rest, ring, on_control, on_event, common)
     elif kind == "replay":  # a recording played as the unit (gyrocal/replay/link.py)
         from gyrocal.replay.link import from_config
 

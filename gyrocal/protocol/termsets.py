@@ -63,3 +63,9 @@ def known_ids() -> dict[int, tuple[str, ...]]:
 
 SEED000_ID = register(SEED000_TERMS)
 EXTENDED_TEMP_ID = register(EXTENDED_TEMP_TERMS)
+TEMP_POLY3_TERMS: tuple[str, ...] = ("1", "temp", "temp^2", "temp^3")
+"""A cubic polynomial in temperature [degC] per axis: what PX4 (TC_G*) and ArduPilot (INS_TCAL*) hold."""
+TEMP_POLY3_ID = register(TEMP_POLY3_TERMS)
+TEMP_POLY2_ID = register(TEMP_POLY3_TERMS[:3])
+"""The quadratic and linear prefixes: an autopilot holds them too (the higher coefficients are 0)."""
+TEMP_POLY1_ID = register(TEMP_POLY3_TERMS[:2])

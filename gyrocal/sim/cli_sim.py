@@ -39,7 +39,8 @@ DEFAULT_CAN_GROUP = "239.74.163.2"  # udp_multicast's IPv4 group when nothing el
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--link", choices=("pty", "can"), default="pty", help="transport (default pty)")
+    p.add_argument("--link", choices=("pty", "can", "mavlink"), default="pty",
+                   help="transport (default pty); mavlink: a virtual PX4 or ArduPilot autopilot")
     p.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="samples per second (default 200)")
     p.add_argument("--seed", type=int, default=0, help="truth seed: same seed, same output (default 0)")
     p.add_argument("--serial", type=int, default=4242, help="unit serial number (default 4242)")
@@ -93,6 +94,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="go silent S s after start (see --silence-for; SIGUSR2 toggles at run time)")
     f.add_argument("--silence-for", type=float, default=0.0, metavar="S", help="length of that silence [s]")
     p.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+    from gyrocal.sim.autopilot_run import configure as configure_autopilot
+
+    configure_autopilot(p)
 
 
 def can_bus_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -164,6 +168,10 @@ def main(args: argparse.Namespace) -> int:
     if logging.getLogger().level > logging.INFO:  # a bus that failed to open warns again from __del__
         logging.getLogger("can").setLevel(logging.ERROR)
     _check(args)
+    if args.link == "mavlink":
+        from gyrocal.sim.autopilot_run import main as autopilot_main
+
+        return autopilot_main(args)
     schedule = load_schedule(args.schedule) if args.schedule else tumble()
     faults = Faults(nak_next=args.nak_next, drop_acks=args.drop_acks, never_hello=args.never_hello,
                     garbage_rate=args.garbage_rate, nan_readback=args.nan_readback, lose_ack=args.lose_ack,
