@@ -28,6 +28,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
         "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
+        "can_node_id": ((int,), 0, "write the unit's CAN node id, an integer 0 to 15"),
     },
     "virtual_unit": {
         "enabled": ((bool,), False, "write true or false"),
@@ -54,6 +55,9 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "push": {
         "ack_timeout_s": ((int, float), 1.0, "write a timeout in seconds"),
         "retries": ((int,), 3, "write the number of attempts, >= 1"),
+        "target_drift_dph": ((int, float), 1.0,
+                             "write the predicted drift RMS [deg/h] below which a set is pushed"),
+        "bias_first": ((bool,), True, "write true or false: push a bias-only set first after a switch-on"),
     },
     "monitor": {
         "alarm_ratio": ((int, float), 3.0, "write a ratio > 1"),
@@ -61,9 +65,15 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "alarm_floor_dps": ((int, float), 0.002, "write the smallest residual [deg/s] that can alarm"),
     },
     "still": {
-        "window_s": ((int, float), 0.2, "write the still-detector window in seconds"),
-        "gyro_std_dps": ((int, float), 0.05, "write the gyro std [deg/s] below which the unit is still"),
-        "accel_tol_g": ((int, float), 0.05, "write the tolerance [g] on |a| = 1 g when still"),
+        "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
+        "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
+        "margin_s": ((int, float), 0.1, "write the seconds cut from each end of a still stretch"),
+        "min_run_s": ((int, float), 0.5, "write the shortest still stretch kept, in seconds"),
+        "learn_s": ((int, float), 1.0, "write the seconds after switch-on that teach the noise level"),
+        "memory_s": ((int, float), 120.0, "write the seconds of history the noise level tracks"),
+        # retired absolute thresholds: accepted and ignored (the engine logs what replaced them)
+        "gyro_std_dps": ((int, float, type(None)), None, "delete it; still.k_std replaced it"),
+        "accel_tol_g": ((int, float, type(None)), None, "delete it; still.k_std replaced it"),
     },
 }
 _TOP = {
@@ -194,6 +204,18 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
         _fail(name, "virtual_unit.rate_hz", s["virtual_unit"]["rate_hz"], "write a rate in Hz, 1 to 2000")
     if s["monitor"]["alarm_ratio"] <= 1:
         _fail(name, "monitor.alarm_ratio", s["monitor"]["alarm_ratio"], "write a ratio > 1")
+    if not 0 <= link["can_node_id"] <= 15:
+        _fail(name, "link.can_node_id", link["can_node_id"], "write an integer 0 to 15")
+    if not s["push"]["target_drift_dph"] > 0:
+        _fail(name, "push.target_drift_dph", s["push"]["target_drift_dph"], "write a drift in deg/h > 0")
+    st = s["still"]
+    for fld in ("window_s", "min_run_s", "learn_s", "memory_s"):
+        if not st[fld] > 0:
+            _fail(name, f"still.{fld}", st[fld], "write a time in seconds > 0")
+    if st["margin_s"] < 0:
+        _fail(name, "still.margin_s", st["margin_s"], "write a time in seconds >= 0")
+    if not st["k_std"] > 1:
+        _fail(name, "still.k_std", st["k_std"], "write a multiple > 1 (4 is the default)")
 
 
 def _resolve_terms(value: str | list[Any], name: str) -> list[str]:

@@ -37,7 +37,7 @@ from gyrocal.daemon.learner import make_learner
 from gyrocal.daemon.notify import Notifier
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session, State
-from gyrocal.daemon.stillness import StillConfig, StillDetector
+from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import CalibrationRecord, CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
@@ -89,16 +89,18 @@ class Engine:
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _new_detector(self, rate_hz: float) -> StillDetector:
-        s = self.cfg.still
-        return StillDetector(StillConfig(int(max(8, s["window_s"] * rate_hz)), s["gyro_std_dps"],
-                                         s["accel_tol_g"]))
+        for key, instead in RETIRED_FIELDS.items():
+            if self.cfg.still.get(key) is not None:
+                log.warning("%s: still.%s is ignored: the still detector's thresholds are relative "
+                            "now; use %s", self.cfg.source, key, instead)
+        return StillDetector.for_rate(rate_hz, self.cfg.still)
 
     def _driver_cfg(self) -> dict[str, Any]:
         """The drivers' config mapping from the daemon's ``link`` section."""
         c = self.link_cfg
         backoff = {"backoff_max_s": float(c.get("reconnect_max_s", 5.0))}
         if c["kind"] == "can":
-            return {"kind": "can", "bus": dict(c["can"]), **backoff}
+            return {"kind": "can", "bus": dict(c["can"]), "node_id": int(c.get("can_node_id", 0)), **backoff}
         return {"kind": "serial", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **backoff}
 
     def open(self, wait: bool = True) -> None:
@@ -380,6 +382,7 @@ class Engine:
             status = {"state": "WAIT_HELLO", "reason": waiting}
         else:
             status = self.session.status()
+            status["still"] = self.detector.status()
         status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
                        "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
                        "sessions": self.sessions_started, "config": self.cfg.source,
