@@ -55,8 +55,10 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "push": {
         "ack_timeout_s": ((int, float), 1.0, "write a timeout in seconds"),
         "retries": ((int,), 3, "write the number of attempts, >= 1"),
-        "target_drift_dph": ((int, float), 1.0,
+        "target_drift_dph": ((int, float), 0.2,
                              "write the predicted drift RMS [deg/h] below which a set is pushed"),
+        "min_cut": ((int, float), 20.0,
+                    "write how many times smaller than the drift it removes the predicted drift left must be"),
         "bias_first": ((bool,), True, "write true or false: push a bias-only set first after a switch-on"),
     },
     "monitor": {
@@ -208,6 +210,8 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
         _fail(name, "link.can_node_id", link["can_node_id"], "write an integer 0 to 15")
     if not s["push"]["target_drift_dph"] > 0:
         _fail(name, "push.target_drift_dph", s["push"]["target_drift_dph"], "write a drift in deg/h > 0")
+    if not s["push"]["min_cut"] > 1:
+        _fail(name, "push.min_cut", s["push"]["min_cut"], "write a factor > 1 (20 is the default)")
     st = s["still"]
     for fld in ("window_s", "min_run_s", "learn_s", "memory_s"):
         if not st[fld] > 0:

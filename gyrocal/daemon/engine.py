@@ -256,8 +256,8 @@ class Engine:
 
     def _start_session(self, hello: Hello, now: float) -> None:
         prior = self.store.latest(hello.serial, acked_only=True)
-        learner = make_learner(self.cfg, prior)
         rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
+        learner = make_learner(self.cfg, prior, rate)
         self.detector = self._new_detector(rate)
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version)

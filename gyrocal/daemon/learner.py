@@ -15,6 +15,15 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
   the mean residual of the stored set. A least-squares update would spread the bias change over
   every term that is 1 at the poses seen (1, gz, gz^2 at z up) and corrupt the others' stored
   values; the bias is the quantity that changes from one switch-on to the next.
+- **Predicted drift.** What the user cares about is the drift a set leaves in the output, not the
+  1-sigma of each coefficient. ``prediction`` gives the standard error of the set's prediction
+  c^T phi, RMS over the poses seen and over the sphere, from the estimator's covariance:
+  var_a(phi) = sigma_a^2 z^T R^+ z with z = M phi (docs/estimators.md). The session pushes when
+  that is small against the drift the set removes, or below ``push.target_drift_dph``.
+- **Thresholds in time, not samples.** The convergence windows default to seconds of still data at
+  the unit's rate, and the per-coefficient bounds (``max_sigma_dps``, ``max_change_dps``) default
+  to off: the predicted-drift gate replaces them, and it holds for a 0.002 deg/s fibre gyro and a
+  0.5 deg/s MEMS part alike. A ``convergence`` section in the config still overrides each field.
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.model.convergence import ConvergenceConfig
+from gyrocal.model.identifiability import rank_aware_solve
 from gyrocal.model.methods import make_estimator
 from gyrocal.model.terms import TermSpec
 
@@ -53,13 +63,21 @@ def structural_rank(names: tuple[str, ...]) -> int:
 class Learner:
     """One session's estimator plus the daemon's push rules (see the module docstring)."""
 
-    def __init__(self, cfg: Any, prior: Any | None = None) -> None:
+    WINDOW_S = 2.0
+    """Seconds of still samples in the convergence windows (error ratio, change) and the minimum."""
+
+    def __init__(self, cfg: Any, prior: Any | None = None, rate_hz: float = 1000.0) -> None:
         self.names = list(prior.terms) if prior is not None and list(prior.terms) == cfg.terms \
             else list(cfg.terms)
         est = cfg.estimator
         conv = dict(est["convergence"])
         self.has_prior = prior is not None and list(prior.terms) == self.names
         conv.setdefault("min_rank", 1 if self.has_prior else structural_rank(tuple(self.names)))
+        n_win = max(200, int(self.WINDOW_S * rate_hz))
+        conv.setdefault("window", n_win)
+        conv.setdefault("min_samples", n_win)
+        conv.setdefault("max_sigma_dps", float("inf"))  # the predicted-drift gate replaces these
+        conv.setdefault("max_change_dps", float("inf"))
         kw: dict[str, Any] = {"forgetting": est["forgetting"],
                               "convergence": ConvergenceConfig.from_dict(conv, f"{cfg.source} estimator")}
         if self.has_prior:
@@ -122,6 +140,47 @@ class Learner:
     def state(self) -> dict[str, Any]:
         return self.est.state()
 
+    def prediction(self, poses_phi: np.ndarray, sphere_phi: np.ndarray,
+                   applied_dps: np.ndarray | None) -> dict[str, Any]:
+        """Predicted drift [deg/s] (3,) the current set would leave, and the drift it would remove.
 
-def make_learner(cfg: Any, prior: Any | None) -> Learner:
-    return Learner(cfg, prior)
+        ``left_poses`` / ``left_sphere``: RMS over the poses seen (K, P) / over the sphere (M, P) of
+        the standard error of c^T phi (inf over the sphere while a direction it needs is not
+        determined). ``removes``: RMS over the poses seen of (c - applied)^T phi, the drift in the
+        present output that the set would take out. In the bias-only stage only the constant term
+        is learnt: its standard error is the whole prediction error (the stored gravity terms are
+        taken as they are).
+        """
+        c = self.coefficients
+        applied = np.zeros_like(c) if applied_dps is None or np.shape(applied_dps) != c.shape \
+            else np.asarray(applied_dps)
+        removes = np.sqrt(np.mean((poses_phi @ (c - applied).T) ** 2, axis=0)) if len(poses_phi) \
+            else np.full(3, np.nan)
+        if self.bias_only:
+            sig = self.uncertainty[:, self.const]
+            return {"left_poses": sig, "left_sphere": sig.copy(), "removes": removes, "stage": "bias"}
+        if self.est.samples == 0 or not len(poses_phi):
+            inf = np.full(3, np.inf)
+            return {"left_poses": inf, "left_sphere": inf.copy(), "removes": removes, "stage": "full"}
+        est = self.est
+        R, b, q, neff = est._totals()
+        w, lam_r, v_r, v_n = rank_aware_solve(R, b, est.w0, est.rank_tol)
+        rss = np.maximum(q - 2 * (w * b).sum(axis=0) + (w * (R @ w)).sum(axis=0), 0.0)
+        dof = neff - lam_r.size
+        var = rss / dof if dof > 0 else np.full(3, np.inf)
+
+        def rms_se(phi: np.ndarray, null_test: bool) -> np.ndarray:
+            z = phi @ est.norm.M.T  # (K, P) normalised terms
+            quad = (((z @ v_r) ** 2) / lam_r).sum(axis=1) if lam_r.size else np.full(len(z), np.inf)
+            if null_test and v_n.size:  # a direction the data did not determine: prediction unknown
+                size = np.maximum(np.linalg.norm(z, axis=1), 1e-300)
+                quad = np.where(np.linalg.norm(z @ v_n, axis=1) > 1e-3 * size, np.inf, quad)
+            return np.sqrt(var * np.mean(quad))
+
+        # the poses seen built R, so they lie in its determined subspace (up to accelerometer noise)
+        return {"left_poses": rms_se(poses_phi, False), "left_sphere": rms_se(sphere_phi, True),
+                "removes": removes, "stage": "full"}
+
+
+def make_learner(cfg: Any, prior: Any | None, rate_hz: float = 1000.0) -> Learner:
+    return Learner(cfg, prior, rate_hz)

@@ -4,10 +4,17 @@
 
 - COLLECTING: still samples train the estimator, except held-out blocks (see blocks.py).
 - CONVERGED: the estimator says so and every direction the data must determine is determined.
+  The push gate then asks what the user cares about: the drift the set is predicted to leave over
+  the poses seen (standard error of the prediction, learner.py) must be below 1/``push.min_cut``
+  of the drift it removes, on every axis, or below ``push.target_drift_dph``.
+- Staged calibration: a warm-started session (a stored set) first pushes a bias-only set, from its
+  first still second, validated on the blocks seen; the full set follows once the data supports it.
 - VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
   ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged.
 - PUSHING: push.py's transaction (write, matching ack, read back, retries).
-- APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows.
+- APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows. The
+  residual is raw - C_applied @ phi over the monitor blocks, so blocks of samples the unit sent
+  before it applied the set (the still detector decides them late) are judged with the new set too.
 
 The unit compensates its own output with the set it holds, so the daemon reconstructs the raw rate
 as ``raw = out + C_applied @ phi`` before learning: the estimator always learns the unit's total
@@ -79,10 +86,18 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
     return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
 
 
+DPH = 3600.0
+SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
+"""Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
+
+
 class Session:
     """The state machine of one switch-on. See the module docstring."""
 
     CHECK_EVERY_S = 0.25
+    MAX_POSES = 64
+    BIAS_MIN_S = 1.0
+    """Seconds of still samples before a bias-only set may be pushed."""
 
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
@@ -116,6 +131,11 @@ class Session:
         self.reason = "reading the set the unit holds (COEFF_READ)"
         self.samples = 0
         self.still_samples = 0
+        self.poses: list[np.ndarray] = []  # block-mean terms (P,) of the distinct poses seen
+        self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
+        self.prediction: dict[str, Any] = {}
+        self._bias_pushed = False
+        self._push_prediction: dict[str, Any] = {}
         self._t0_unit: float | None = None
         self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)  # (unit time s, temp degC)
         self._next_check = now
@@ -172,6 +192,44 @@ class Session:
             self.learner.update_many(phi[train], raw[train])
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
+        self._note_poses(blocks, cols)
+
+    def _note_poses(self, blocks: list[Any], cols: dict[str, np.ndarray]) -> None:
+        """Remember the distinct poses seen (block-mean terms), for the predicted drift."""
+        self._context = {k: float(np.mean(v)) for k, v in cols.items() if k not in ("ax", "ay", "az")}
+        for b in blocks:
+            if all(np.max(np.abs(b.phi - p)) > 0.05 for p in self.poses):
+                self.poses.append(b.phi.copy())
+                if len(self.poses) > self.MAX_POSES:
+                    self.poses.pop(0)
+
+    def _sphere_phi(self) -> np.ndarray:
+        n = SPHERE_G.shape[0]
+        cols = {k: np.full(n, v) for k, v in self._context.items()}
+        cols.update({"ax": SPHERE_G[:, 0], "ay": SPHERE_G[:, 1], "az": SPHERE_G[:, 2]})
+        cols.setdefault("t", np.zeros(n))
+        return block_terms(self.spec, cols)
+
+    def predict(self) -> dict[str, Any]:
+        """The learner's predicted drift [deg/s] left by the current set (see learner.py)."""
+        applied = None
+        if self.applied is not None and tuple(self.applied.names) == tuple(self.names):
+            applied = self.applied.coeffs_dps
+        poses = np.array(self.poses) if self.poses else np.zeros((0, len(self.names)))
+        self.prediction = self.learner.prediction(poses, self._sphere_phi(), applied)
+        return self.prediction
+
+    def _gate(self) -> tuple[bool, str]:
+        """The push gate on the predicted drift left (deg/h in the reason)."""
+        p = self.predict()
+        left, removes = p["left_poses"], p["removes"]
+        target = self.cfg.push["target_drift_dph"] / DPH
+        cut = self.cfg.push["min_cut"]
+        ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
+        why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses; it must be below "
+               f"{self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
+               "the set removes")
+        return ok, why
 
     def _temperature_rate(self, samples: np.ndarray) -> float:
         """Causal dT/dt [degC/s]: the least-squares slope of 1 s temperature means over the last 20 s."""
@@ -225,7 +283,14 @@ class Session:
     def _check_convergence(self, now: float) -> None:
         """COLLECTING -> CONVERGED -> VALIDATING; in MONITORING, re-validate as evidence grows."""
         monitoring = self.state is State.MONITORING
+        if self._bias_stage_due():
+            self._push_bias(now)
+            return
         ok, why = self.learner.converged
+        if ok:
+            ok, gate_why = self._gate()
+            if not ok:
+                why = "converged, but " + gate_why
         if not ok:
             if not monitoring:
                 self.state, self.reason = State.COLLECTING, why
@@ -245,15 +310,33 @@ class Session:
             return
         self._validate(now)
 
-    def _validate(self, now: float) -> None:
+    def _bias_stage_due(self) -> bool:
+        """A warm start's bias-only set is due: first still second seen, not pushed yet this session."""
+        return (bool(self.cfg.push.get("bias_first", True)) and not self._bias_pushed
+                and self.learner.bias_only and self.validated_rms is None
+                and self.learner.samples >= self.BIAS_MIN_S * self.rate_hz and len(self.monitor) >= 2)
+
+    def _push_bias(self, now: float) -> None:
+        """Stage 1 after a switch-on: the stored set with this switch-on's bias, validated on the blocks
+        seen (the bias is a mean: there is nothing to over-fit), pushed as soon as the gate passes."""
+        ok, why = self._gate()
+        if not ok:
+            self.reason = "bias stage: " + why
+            return
+        self._bias_pushed = True
+        self._validate(now, self.monitor, stage="bias")
+
+    def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
         coeffs = self.learner.coefficients
-        rms_old = self.holdout.rms_out()
-        rms_new = self.holdout.rms_with(coeffs)
+        blocks = self.holdout if blocks is None else blocks
+        rms_old = blocks.rms_with(self._applied_coeffs()) if self._applied_coeffs() is not None \
+            else blocks.rms_out()
+        rms_new = blocks.rms_with(coeffs)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
         self.last_validation = {
-            "blocks": len(self.holdout),
+            "blocks": len(blocks), "stage": stage,
             "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
         }
@@ -262,6 +345,10 @@ class Session:
                    f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
             self.last_validation["passed"] = False
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            if stage == "bias":
+                log.info("unit %s: bias stage: %s", self.hello.serial, why)
+                self.state, self.reason = State.COLLECTING, why
+                return
             if self.validated_rms is not None:  # a re-check while monitoring a pushed set: routine
                 log.info("unit %s: %s", self.hello.serial, why)
                 self.state = State.MONITORING
@@ -271,6 +358,8 @@ class Session:
             return
         self.last_validation["passed"] = True
         self.validated_rms = rms_new
+        self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items() if k != "stage"}
+        self._push_prediction["stage"] = stage
         record = self._record(coeffs)
         self.start_push(record["version"], self.names, coeffs, now)
 
@@ -282,6 +371,7 @@ class Session:
             identifiable=self.learner.identifiable(),
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
+                   "predicted_drift_dph": self._push_prediction,
                    "warm_started_from": self.warm_started_from},
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
             push={"status": "pending"},
@@ -309,6 +399,9 @@ class Session:
         version = self.push.write.version
         self.push = None
         self.last_push = {"version": version, **result.as_dict(), "utc": utc_now()}
+        if self._push_prediction:
+            self.last_push["predicted_drift_dph"] = self._push_prediction
+            self._push_prediction = {}
         try:
             self.store.update_push(self.hello.serial, version, self.last_push)
         except Exception as err:  # the store must never take the session down with it
@@ -331,7 +424,8 @@ class Session:
     def _check_alarm(self) -> None:
         if self.validated_rms is None or len(self.monitor) < 4:
             return
-        rms = self.monitor.rms_out()
+        applied = self._applied_coeffs()
+        rms = self.monitor.rms_out() if applied is None else self.monitor.rms_with(applied)
         limit = np.maximum(self.validated_rms * self.cfg.monitor["alarm_ratio"],
                            self.cfg.monitor["alarm_floor_dps"])
         alarm = bool(np.any(rms > limit))
@@ -339,6 +433,13 @@ class Session:
             log.warning("unit %s: drift alarm: residual %s deg/s exceeds %s", self.hello.serial,
                         np.round(rms, 6).tolist(), np.round(limit, 6).tolist())
         self.alarm = alarm
+
+    def _applied_coeffs(self) -> np.ndarray | None:
+        """The unit's set in this session's term order, or None if it holds other terms (or none)."""
+        a = self.applied
+        if a is None or tuple(a.names) != tuple(self.names) or a.coeffs_dps.shape != (3, len(self.names)):
+            return None
+        return a.coeffs_dps
 
     # -- status -------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -362,4 +463,17 @@ class Session:
             "alarm": self.alarm,
             "last_push": self.last_push,
             "warm_started_from": self.warm_started_from,
+            "poses_seen": len(self.poses),
+            "predicted_drift_dph": {k: (_xyz_dph(v) if k != "stage" else v)
+                                    for k, v in self.prediction.items()},
         }
+
+
+def _dph(v: np.ndarray) -> str:
+    """A per-axis figure [deg/s] as deg/h text for log lines and reasons."""
+    return "/".join(f"{x * DPH:.3g}" for x in np.asarray(v, dtype=float))
+
+
+def _xyz_dph(v: np.ndarray) -> dict[str, float | None]:
+    """A per-axis figure [deg/s] as {x, y, z} in deg/h for status and records (inf/NaN as None)."""
+    return {a: (float(x) * DPH if np.isfinite(x) else None) for a, x in zip("xyz", np.asarray(v), strict=True)}

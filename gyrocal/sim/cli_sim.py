@@ -128,7 +128,8 @@ def main(args: argparse.Namespace) -> int:
     schedule = load_schedule(args.schedule) if args.schedule else tumble()
     faults = Faults(nak_next=args.nak_next, drop_acks=args.drop_acks, never_hello=args.never_hello,
                     garbage_rate=args.garbage_rate)
-    unit = VirtualUnit(grade_truth(args.grade, args.rate), schedule, args.rate, args.seed, args.serial, faults=faults)
+    truth = grade_truth(args.grade, args.rate)
+    unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
     recorder = None
