@@ -62,7 +62,8 @@ class Harness:
             return
         prior = self.store.latest(hello[0].serial, acked_only=True)
         self.detector = StillDetector.for_rate(RATE_HZ, self.cfg.still)
-        self.session = Session(self.cfg, hello[0], make_learner(self.cfg, prior, RATE_HZ), self.store, self.send,
+        learner = make_learner(self.cfg, prior, RATE_HZ)
+        self.session = Session(self.cfg, hello[0], learner, self.store, self.send,
                                self.now, RATE_HZ, None if prior is None else prior.version)
 
     def run(self, seconds: float, until: Any = None) -> None:

@@ -58,7 +58,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "target_drift_dph": ((int, float), 0.2,
                              "write the predicted drift RMS [deg/h] below which a set is pushed"),
         "min_cut": ((int, float), 20.0,
-                    "write how many times smaller than the drift it removes the predicted drift left must be"),
+                    "write the factor by which the predicted drift left must undercut the drift removed"),
         "bias_first": ((bool,), True, "write true or false: push a bias-only set first after a switch-on"),
     },
     "monitor": {

@@ -91,6 +91,18 @@ class Learner:
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)
         self._n = 0
+        self.prior_left = self._prior_left(prior) if self.has_prior else {}
+
+    @staticmethod
+    def _prior_left(prior: Any) -> dict[str, np.ndarray]:
+        """The stored set's own predicted drift left [deg/s] (3,), poses and sphere, if it recorded one."""
+        pred = (getattr(prior, "stats", None) or {}).get("predicted_drift_dph") or {}
+        out = {}
+        for key in ("left_poses", "left_sphere"):
+            v = pred.get(key) or {}
+            if all(isinstance(v.get(a), int | float) for a in "xyz"):
+                out[key] = np.array([v[a] for a in "xyz"], dtype=float) / 3600.0
+        return out
 
     def update_many(self, phi: np.ndarray, raw_dps: np.ndarray) -> None:
         self.est.update_many(phi, raw_dps)
@@ -157,8 +169,12 @@ class Learner:
         removes = np.sqrt(np.mean((poses_phi @ (c - applied).T) ** 2, axis=0)) if len(poses_phi) \
             else np.full(3, np.nan)
         if self.bias_only:
+            # the new bias's error plus the stored gravity terms' own (recorded when they were pushed)
             sig = self.uncertainty[:, self.const]
-            return {"left_poses": sig, "left_sphere": sig.copy(), "removes": removes, "stage": "bias"}
+            zero = np.zeros(3)
+            return {"left_poses": np.hypot(sig, self.prior_left.get("left_poses", zero)),
+                    "left_sphere": np.hypot(sig, self.prior_left.get("left_sphere", zero)),
+                    "removes": removes, "stage": "bias", "gate": sig}
         if self.est.samples == 0 or not len(poses_phi):
             inf = np.full(3, np.inf)
             return {"left_poses": inf, "left_sphere": inf.copy(), "removes": removes, "stage": "full"}

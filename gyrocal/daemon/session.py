@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -42,7 +41,7 @@ from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello
-from gyrocal.protocol.termsets import names_for, terms_id
+from gyrocal.protocol.termsets import TempRate, names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
 
@@ -70,7 +69,8 @@ class AppliedSet:
         """What the unit subtracts from its output, (N, 3) [deg/s]."""
         if not self.names or not np.any(self.coeffs_dps):
             return np.zeros((cols["t"].shape[0], 3))
-        return TermSpec.parse(self.names).design(cols) @ self.coeffs_dps.T
+        # gravity terms from a/|a|, as the unit computes them (docs/protocol.md, section 4)
+        return block_terms(TermSpec.parse(self.names), cols) @ self.coeffs_dps.T
 
     @classmethod
     def from_report(cls, msg: CoeffReport) -> AppliedSet:
@@ -137,7 +137,7 @@ class Session:
         self._bias_pushed = False
         self._push_prediction: dict[str, Any] = {}
         self._t0_unit: float | None = None
-        self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)  # (unit time s, temp degC)
+        self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 4)
         self._next_check = now
         self._next_validation_at = 0
         self._read_deadline = now
@@ -179,7 +179,7 @@ class Session:
         cols = {
             "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
             "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
-            "dtemp": np.full(samples.size, self._temperature_rate(samples)),
+            "dtemp": self._trate.update(samples["t"], samples["temp"]),
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         raw = out + self._compensation(samples["seq"], cols)
@@ -222,7 +222,8 @@ class Session:
     def _gate(self) -> tuple[bool, str]:
         """The push gate on the predicted drift left (deg/h in the reason)."""
         p = self.predict()
-        left, removes = p["left_poses"], p["removes"]
+        # the bias stage is judged on what it learns (the bias); the stored terms' error is reported
+        left, removes = p.get("gate", p["left_poses"]), p["removes"]
         target = self.cfg.push["target_drift_dph"] / DPH
         cut = self.cfg.push["min_cut"]
         ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
@@ -230,17 +231,6 @@ class Session:
                f"{self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
                "the set removes")
         return ok, why
-
-    def _temperature_rate(self, samples: np.ndarray) -> float:
-        """Causal dT/dt [degC/s]: the least-squares slope of 1 s temperature means over the last 20 s."""
-        t, temp = float(samples["t"][-1]), float(np.mean(samples["temp"]))
-        if not self._temp_hist or t - self._temp_hist[-1][0] >= 1.0:
-            self._temp_hist.append((t, temp))
-        pts = [(ti, yi) for ti, yi in self._temp_hist if t - ti <= 20.0]
-        if len(pts) < 3:
-            return 0.0
-        tt, yy = np.array(pts).T
-        return float(np.polyfit(tt - tt[0], yy, 1)[0])
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray]) -> np.ndarray:
         """What the unit subtracted from each sample, (N, 3) [deg/s], switching sets at the ack."""
@@ -358,7 +348,8 @@ class Session:
             return
         self.last_validation["passed"] = True
         self.validated_rms = rms_new
-        self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items() if k != "stage"}
+        self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items()
+                                 if k not in ("stage", "gate")}
         self._push_prediction["stage"] = stage
         record = self._record(coeffs)
         self.start_push(record["version"], self.names, coeffs, now)
@@ -465,7 +456,7 @@ class Session:
             "warm_started_from": self.warm_started_from,
             "poses_seen": len(self.poses),
             "predicted_drift_dph": {k: (_xyz_dph(v) if k != "stage" else v)
-                                    for k, v in self.prediction.items()},
+                                    for k, v in self.prediction.items() if k != "gate"},
         }
 
 
@@ -476,4 +467,5 @@ def _dph(v: np.ndarray) -> str:
 
 def _xyz_dph(v: np.ndarray) -> dict[str, float | None]:
     """A per-axis figure [deg/s] as {x, y, z} in deg/h for status and records (inf/NaN as None)."""
-    return {a: (float(x) * DPH if np.isfinite(x) else None) for a, x in zip("xyz", np.asarray(v), strict=True)}
+    v = np.asarray(v, dtype=float)
+    return {a: (float(x) * DPH if np.isfinite(x) else None) for a, x in zip("xyz", v, strict=True)}

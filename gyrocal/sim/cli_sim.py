@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 
 from gyrocal.errors import ConfigError
+from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
 from gyrocal.sim.schedule import load_schedule, tumble
-from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.unit import Faults, VirtualUnit
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ that of the demo's. A grade sets what differs between such units:
 - ``accel_noise_density_g_rthz``: accelerometer white noise [g/sqrt(Hz)].
 
 The figures are typical datasheet values, not any one part's: fibre ~ a navigation-grade FOG
-(ARW 0.004 deg/sqrt(h)), tactical ~ an ADIS1649x-class IMU (ARW 0.15 deg/sqrt(h)), consumer ~ an
+(ARW 0.004 deg/sqrt(h)), tactical ~ an ADIS1649x-class IMU (ARW 0.09 deg/sqrt(h)), consumer ~ an
 MPU-6050-class part (ARW 0.3 deg/sqrt(h); 0.16 deg/s per sample at 1 kHz, like the issue's unit).
 ``demo`` is the demo's unit exactly (seed 000's drift, 0.002 deg/s per sample whatever the rate).
 """
@@ -72,8 +72,8 @@ GRADES: dict[str, Grade] = {
                   "the demo's unit: seed 000 drift, 0.002 deg/s per sample"),
     "fibre": Grade("fibre", 6e-5, 1.0, 10.0, 0.05, 2.0, 300.0, 0.0, 0.005, 2e-6,
                    "navigation-grade fibre-optic gyro: ARW 0.004 deg/sqrt(h)"),
-    "tactical": Grade("tactical", 2.5e-3, 5.0, 180.0, 0.5, 2.0, 300.0, 0.0, 0.8, 2e-5,
-                      "tactical MEMS IMU: ARW 0.15 deg/sqrt(h), 40 deg/h/g"),
+    "tactical": Grade("tactical", 1.5e-3, 10.0, 180.0, 0.5, 2.0, 300.0, 0.0, 0.8, 2e-5,
+                      "tactical MEMS IMU: ARW 0.09 deg/sqrt(h), 70 deg/h/g"),
     "consumer": Grade("consumer", 5e-3, 40.0, 1800.0, 5.0, 2.0, 300.0, 0.0, 10.0, 1e-4,
                       "consumer MEMS part: ARW 0.3 deg/sqrt(h), 300 deg/h/g, 0.5 deg/s switch-on bias"),
 }
