@@ -69,7 +69,7 @@ class AppliedSet:
         """What the unit subtracts from its output, (N, 3) [deg/s]."""
         if not self.names or not np.any(self.coeffs_dps):
             return np.zeros((cols["t"].shape[0], 3))
-        # gravity terms from a/|a|, as the unit computes them (docs/protocol.md, section 4)
+        # gravity terms from a/|a|, as the unit computes them (docs/protocol.md, section 6)
         return block_terms(TermSpec.parse(self.names), cols) @ self.coeffs_dps.T
 
     @classmethod
@@ -137,7 +137,7 @@ class Session:
         self._bias_pushed = False
         self._push_prediction: dict[str, Any] = {}
         self._t0_unit: float | None = None
-        self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 4)
+        self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
         self._next_check = now
         self._next_validation_at = 0
         self._read_deadline = now

@@ -69,7 +69,7 @@ EXTENDED_TEMP_ID = register(EXTENDED_TEMP_TERMS)
 
 
 class TempRate:
-    """``dtemp`` [degC/s] exactly as a unit computes it for a term set that uses it (protocol.md, 4).
+    """``dtemp`` [degC/s] exactly as a unit computes it for a term set that uses it (protocol.md, section 6).
 
     Each whole second of unit time (floor(t_s)) the unit averages the temperature of that second's
     samples. When a second closes, dtemp becomes the least-squares slope of the last 20 such means
