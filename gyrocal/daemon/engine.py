@@ -383,6 +383,8 @@ class Engine:
         else:
             status = self.session.status()
             status["still"] = self.detector.status()
+            if not status.get("trained_samples") and status["still"].get("why"):
+                status["reason"] = f"{status['reason']}; {status['still']['why']}"  # why nothing is learnt
         status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
                        "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
                        "sessions": self.sessions_started, "config": self.cfg.source,

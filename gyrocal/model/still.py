@@ -39,7 +39,8 @@ class StillRule:
     still), and every accelerometer axis has a rolling std below ``k_std`` times its quiet level
     (gravity turning). Still stretches then lose ``margin_s`` at each end and are dropped when
     shorter than ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
-    no gyro is that noisy at rest, so it has not been at rest yet.
+    no gyro is that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro
+    mean exceeds ``max_rate_dps`` on any axis.
     """
 
     window_s: float = 0.4
@@ -50,6 +51,9 @@ class StillRule:
     band_k: float = 8.0
     band_floor_dps: float = 0.5
     max_quiet_dps: float = 5.0
+    max_rate_dps: float = 10.0
+    """A rolling gyro mean beyond this [deg/s] is a turn, whatever the learnt centre: a unit that
+    switches on turning would otherwise learn the turn as its bias (MEMS biases are a few deg/s)."""
     learn_s: float = 1.0
     """On line: seconds of data before the first decision (the quiet level is learnt on them)."""
     memory_s: float = 120.0
@@ -136,9 +140,10 @@ def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: Stil
     gq = np.maximum(np.quantile(std, rule.quantile, axis=0), 1e-9)
     aq = np.maximum(np.quantile(astd, rule.quantile, axis=0), 1e-6)
     centre = np.empty(3)
+    slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
     for k in range(3):
-        sel = std[:, k] < rule.k_std * gq[k]
-        centre[k] = np.median(mean[sel, k]) if np.any(sel) else np.median(mean[:, k])
+        sel = (std[:, k] < rule.k_std * gq[k]) & slow
+        centre[k] = np.median(mean[sel, k]) if np.any(sel) else 0.0
     return QuietLevels(gq, aq, centre)
 
 
@@ -148,6 +153,7 @@ def quiet_mask(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, lv: QuietLev
     band = np.maximum(rule.band_k * lv.gyro_dps, rule.band_floor_dps)
     ok = np.all(std < rule.k_std * lv.gyro_dps, axis=1)
     ok &= np.all(np.abs(mean - lv.centre_dps) < band, axis=1)
+    ok &= np.all(np.abs(mean) < rule.max_rate_dps, axis=1)
     ok &= np.all(astd < rule.k_std * lv.accel_g, axis=1)
     if np.any(lv.gyro_dps > rule.max_quiet_dps):
         ok[:] = False
