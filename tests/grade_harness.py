@@ -69,7 +69,7 @@ class GradeRun:
         self.session = Session(self.cfg, hello[0], make_learner(self.cfg, prior, self.rate_hz), self.store,
                                self.send, self.now, self.rate_hz, None if prior is None else prior.version)
 
-    def run(self, seconds: float, until: Any = None, step_s: float = 0.02) -> None:
+    def run(self, seconds: float, until: Any = None, step_s: float = 0.05) -> None:
         step = max(1, int(round(step_s * self.rate_hz)))
         for _ in range(int(seconds * self.rate_hz / step)):
             self.now += step / self.rate_hz

@@ -103,3 +103,16 @@ def test_status_says_why_nothing_is_still() -> None:
     assert st["noise"]["gyro_noise_dps"]["x"] == pytest.approx(0.002, rel=0.3)
     assert st["noise"]["gyro_std_limit_dps"]["x"] == pytest.approx(4 * st["noise"]["gyro_noise_dps"]["x"])
     assert 0 < st["still_fraction"] < 1
+
+
+def test_config_still_section_old_keys_are_accepted_and_new_ones_checked(tmp_path) -> None:
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.stillness import rule_from_config
+    from gyrocal.errors import ConfigError
+
+    base = {"state_dir": str(tmp_path), "control_socket": str(tmp_path / "c")}
+    cfg = load_config(None, {**base, "still.gyro_std_dps": 0.05, "still.accel_tol_g": 0.05})
+    assert rule_from_config(cfg.still) == StillRule()  # the retired absolute thresholds change nothing
+    assert rule_from_config({"window_s": 0.2, "k_std": 5}).window(1000.0) == 200
+    with pytest.raises(ConfigError, match="still.k_std"):
+        load_config(None, {**base, "still.k_std": 0.5})
