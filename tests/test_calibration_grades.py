@@ -82,3 +82,20 @@ def test_grades_span_fibre_to_consumer_noise() -> None:
     assert GRADES["consumer"].bias_instability_dph > GRADES["fibre"].bias_instability_dph
     t = grade_truth("consumer", 2000.0)
     assert t.noise_dps == pytest.approx(GRADES["consumer"].noise_density_dps_rthz * np.sqrt(2000.0))
+
+
+@pytest.mark.parametrize(("grade", "density"), [("consumer", 5e-3)])
+def test_gyrocal_sim_grade_sets_the_units_noise(tmp_path: Path, grade: str, density: float) -> None:
+    import io
+    import subprocess
+    import sys
+
+    log = tmp_path / "g.csv"
+    out = subprocess.run([sys.executable, "-m", "gyrocal.cli", "sim", "--grade", grade, "--rate", "200",
+                          "--duration", "1", "--record", str(log)], capture_output=True, text=True,
+                         timeout=60, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    text = "".join(ln for ln in log.read_text().splitlines(keepends=True) if not ln.startswith("#"))
+    data = np.genfromtxt(io.StringIO(text), delimiter=",", names=True)
+    first_dwell = data["t"] < 1.0  # the tumble starts with a 1.2 s dwell
+    assert np.std(data["wx"][first_dwell]) == pytest.approx(density * np.sqrt(200.0), rel=0.25)
