@@ -63,6 +63,7 @@ def structural_rank(names: tuple[str, ...]) -> int:
 class Learner:
     """One session's estimator plus the daemon's push rules (see the module docstring)."""
 
+    MIN_INFLATION_BLOCKS = 6
     WINDOW_S = 2.0
     """Seconds of still samples in the convergence windows (error ratio, change) and the minimum."""
 
@@ -153,7 +154,7 @@ class Learner:
         return self.est.state()
 
     def prediction(self, poses_phi: np.ndarray, sphere_phi: np.ndarray,
-                   applied_dps: np.ndarray | None) -> dict[str, Any]:
+                   applied_dps: np.ndarray | None, held_out: Any | None = None) -> dict[str, Any]:
         """Predicted drift [deg/s] (3,) the current set would leave, and the drift it would remove.
 
         ``left_poses`` / ``left_sphere``: RMS over the poses seen (K, P) / over the sphere (M, P) of
@@ -193,9 +194,27 @@ class Learner:
                 quad = np.where(np.linalg.norm(z @ v_n, axis=1) > 1e-3 * size, np.inf, quad)
             return np.sqrt(var * np.mean(quad))
 
-        # the poses seen built R, so they lie in its determined subspace (up to accelerometer noise)
-        return {"left_poses": rms_se(poses_phi, False), "left_sphere": rms_se(sphere_phi, True),
-                "removes": removes, "stage": "full"}
+        # white noise is what sigma assumes; a real unit's noise is coloured (flicker, random walk) and
+        # its model incomplete (temperature): the held-out blocks show by how much, through the scatter
+        # of their residual means against what white noise would give (>= 1; 1 with too few blocks)
+        infl = self._inflation(held_out, var, est, v_r, lam_r)
+        return {"left_poses": rms_se(poses_phi, False) * infl, "left_sphere": rms_se(sphere_phi, True) * infl,
+                "removes": removes, "stage": "full", "noise_inflation": infl}
+
+    def _inflation(self, blocks: Any, var: np.ndarray, est: Any, v_r: np.ndarray,
+                   lam_r: np.ndarray) -> np.ndarray:
+        """sqrt(observed / white-noise-expected) mean square of held-out block residuals, per axis."""
+        if blocks is None or len(blocks) < self.MIN_INFLATION_BLOCKS or not lam_r.size:
+            return np.ones(3)
+        raw = np.array([b.raw_dps for b in blocks])
+        phi = np.array([b.phi for b in blocks])
+        n = np.array([b.n for b in blocks], dtype=float)
+        res = raw - phi @ self.coefficients.T
+        z = phi @ est.norm.M.T
+        quad = (((z @ v_r) ** 2) / lam_r).sum(axis=1)
+        expected = var[None, :] * (1.0 / n + quad)[:, None]
+        ratio = np.mean(res**2, axis=0) / np.maximum(np.mean(expected, axis=0), 1e-300)
+        return np.sqrt(np.maximum(ratio, 1.0))
 
 
 def make_learner(cfg: Any, prior: Any | None, rate_hz: float = 1000.0) -> Learner:

@@ -216,7 +216,7 @@ class Session:
         if self.applied is not None and tuple(self.applied.names) == tuple(self.names):
             applied = self.applied.coeffs_dps
         poses = np.array(self.poses) if self.poses else np.zeros((0, len(self.names)))
-        self.prediction = self.learner.prediction(poses, self._sphere_phi(), applied)
+        self.prediction = self.learner.prediction(poses, self._sphere_phi(), applied, self.holdout.blocks)
         return self.prediction
 
     def _gate(self) -> tuple[bool, str]:
@@ -349,7 +349,9 @@ class Session:
         self.last_validation["passed"] = True
         self.validated_rms = rms_new
         self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items()
-                                 if k not in ("stage", "gate")}
+                                 if k in ("left_poses", "left_sphere", "removes")}
+        infl = self.prediction.get("noise_inflation", np.ones(3))
+        self._push_prediction["noise_inflation"] = np.round(infl, 3).tolist()
         self._push_prediction["stage"] = stage
         record = self._record(coeffs)
         self.start_push(record["version"], self.names, coeffs, now)
@@ -455,7 +457,7 @@ class Session:
             "last_push": self.last_push,
             "warm_started_from": self.warm_started_from,
             "poses_seen": len(self.poses),
-            "predicted_drift_dph": {k: (_xyz_dph(v) if k != "stage" else v)
+            "predicted_drift_dph": {k: (_xyz_dph(v) if k in ("left_poses", "left_sphere", "removes") else v)
                                     for k, v in self.prediction.items() if k != "gate"},
         }
 

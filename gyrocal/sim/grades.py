@@ -10,9 +10,8 @@ that of the demo's. A grade sets what differs between such units:
 - ``switch_on_bias_dph``: the std of the bias drawn anew at every switch-on [deg/h].
 - ``temp_dph_per_c``: the bias slope on temperature [deg/h per degC]; with ``thermal_rise_c`` of
   warm-up after switch-on (time constant ``thermal_tau_s``).
-- ``bias_instability_dph``: the flicker floor of the Allan deviation [deg/h]. NOT rendered yet: the
-  truth model on this branch has white noise, random walk and temperature effects only. The field
-  is named here so that it is wired to sim/truth.py's coloured noise when that lands (issue 12).
+- ``bias_instability_dph``: the bias instability B [deg/h], the flicker floor of the Allan deviation
+  (0.664 B over 1..1000 s), rendered by sim/truth.py's flicker (``Effects.bias_instability_dps``).
 - ``rate_random_walk_dps_rts``: bias random walk [deg/s/sqrt(s)], rendered by the truth model.
 - ``accel_noise_density_g_rthz``: accelerometer white noise [g/sqrt(Hz)].
 
@@ -43,7 +42,7 @@ class Grade:
     thermal_tau_s: float
     rate_random_walk_dps_rts: float
     bias_instability_dph: float
-    """Flicker floor [deg/h]; named for issue 12's coloured noise, not rendered yet (see module doc)."""
+    """Bias instability B [deg/h] (flicker; the Allan floor is 0.664 B)."""
     accel_noise_density_g_rthz: float
     description: str
 
@@ -63,7 +62,8 @@ class Grade:
             accel_noise_g=self.accel_noise_density_g_rthz * float(np.sqrt(rate_hz)),
             thermal=Thermal(rise_c=self.thermal_rise_c, tau_s=self.thermal_tau_s),
             effects=Effects(temp_dps_per_c=np.full(3, self.temp_dph_per_c * DPH),
-                            random_walk_dps_per_sqrt_s=np.full(3, self.rate_random_walk_dps_rts)),
+                            random_walk_dps_per_sqrt_s=np.full(3, self.rate_random_walk_dps_rts),
+                            bias_instability_dps=np.full(3, self.bias_instability_dph * DPH)),
         )
 
 
