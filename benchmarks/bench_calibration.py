@@ -145,9 +145,24 @@ def run_link(kind: str, grade: str, rate_hz: float, seed: int, extra_s: float,
         return _summary(before, pushes, state["alarms"])
 
 
+def _link_run_or_error(kind: str, grade: str, rate_hz: float, seed: int, extra_s: float,
+                       timeout_s: float) -> dict[str, Any]:
+    """One link run; a unit that fails to start (a loaded machine) is retried once, then recorded."""
+    from gyrocal.errors import GyrocalError
+
+    err: Exception | None = None
+    for _ in range(2):
+        try:
+            return run_link(kind, grade, rate_hz, seed, extra_s, timeout_s)
+        except (GyrocalError, OSError) as e:
+            err = e
+    return {"error": str(err)}
+
+
 def _row(r: dict[str, Any]) -> str:
     if "t_first_push_s" not in r:
-        return f"| {r['grade']} | {r['rate_hz']:.0f} | {r['link']} | {r['seed']} | no push | | | | |"
+        why = r.get("error", "no push")
+        return f"| {r['grade']} | {r['rate_hz']:.0f} | {r['link']} | {r['seed']} | {why} | | | | |"
     b, f, p, q = r["before"], r["after_first"], r["predicted_first"], r["pred_ratio"]
     best = r["after_best"]
     return (f"| {r['grade']} | {r['rate_hz']:.0f} | {r['link']} | {r['seed']} | {r['t_first_push_s']:.1f} | "
@@ -219,7 +234,8 @@ def main() -> int:
             for g in grades:
                 for rate in link_rates:
                     for seed in link_seeds:
-                        r = run_link("can" if kind == "can" else "serial", g, rate, seed, extra, args.timeout)
+                        r = _link_run_or_error("can" if kind == "can" else "serial", g, rate, seed, extra,
+                                               args.timeout)
                         rows.append({"grade": g, "rate_hz": rate, "link": kind, "seed": seed, **r})
                         print(_row(rows[-1]), file=sys.stderr, flush=True)
     summary = aggregate(rows)
