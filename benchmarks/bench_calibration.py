@@ -175,7 +175,7 @@ def _row(r: dict[str, Any]) -> str:
 def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per grade, rate and link: medians and worst cases over seeds."""
     out = []
-    keys = sorted({(r["grade"], r["rate_hz"], r["link"]) for r in rows}, key=str)
+    keys = sorted({(r["grade"], r["rate_hz"], r["link"]) for r in rows})
     for g, rate, link in keys:
         rs = [r for r in rows if (r["grade"], r["rate_hz"], r["link"]) == (g, rate, link)]
         ok = [r for r in rs if "t_first_push_s" in r]

@@ -142,6 +142,13 @@ class Learner:
             return sig
         return self.est.uncertainty
 
+    def residual_var(self) -> np.ndarray:
+        """Per-sample variance (3,) [deg/s^2] of the stored set's residual this session (bias stage)."""
+        if self._n == 0:
+            return np.zeros(3)
+        mean = self._sum_res / self._n
+        return np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
+
     def identifiable(self) -> dict[str, Any]:
         return self.est.identifiability.as_contract()
 

@@ -98,6 +98,10 @@ class Session:
     MAX_POSES = 64
     BIAS_MIN_S = 1.0
     """Seconds of still samples before a bias-only set may be pushed."""
+    BIAS_MIN_CUT = 3.0
+    """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
+    times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
+    The first push of a cold start and every full set use ``push.min_cut`` (20)."""
 
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
@@ -225,7 +229,7 @@ class Session:
         # the bias stage is judged on what it learns (the bias); the stored terms' error is reported
         left, removes = p.get("gate", p["left_poses"]), p["removes"]
         target = self.cfg.push["target_drift_dph"] / DPH
-        cut = self.cfg.push["min_cut"]
+        cut = self.BIAS_MIN_CUT if p.get("stage") == "bias" else self.cfg.push["min_cut"]
         ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses; it must be below "
                f"{self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
@@ -348,6 +352,12 @@ class Session:
             return
         self.last_validation["passed"] = True
         self.validated_rms = rms_new
+        if stage == "bias":
+            # judged in sample on a few blocks: the alarm's reference must hold what other poses and
+            # later blocks will show (block noise, the stored terms' and the new bias's error)
+            block_var = self.learner.residual_var() / max(self.acc.size, 1)
+            left = np.nan_to_num(self.prediction.get("left_sphere", np.zeros(3)), posinf=0.0)
+            self.validated_rms = np.sqrt(rms_new**2 + block_var + left**2)
         self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items()
                                  if k in ("left_poses", "left_sphere", "removes")}
         infl = self.prediction.get("noise_inflation", np.ones(3))
