@@ -27,7 +27,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 ONE_SIGMA_CI = math.erf(1.0 / math.sqrt(2.0))
 """Probability inside +-1 sigma (0.6827): the confidence of every interval here by default."""
@@ -173,6 +172,8 @@ def noise_alpha(y: np.ndarray, m: int, default: int = 0) -> int:
 def chi2_interval(dev: np.ndarray, edf: np.ndarray,
                   ci: float = ONE_SIGMA_CI) -> tuple[np.ndarray, np.ndarray]:
     """Interval of a deviation with ``edf`` degrees of freedom at confidence ci (SP 1065 eq. 45)."""
+    from scipy import stats  # lazy: the simulator imports this module on a lean install (no scipy)
+
     p = (1.0 - ci) / 2.0
     dev, edf = np.asarray(dev, dtype=np.float64), np.asarray(edf, dtype=np.float64)
     lo = dev * np.sqrt(edf / stats.chi2.ppf(1.0 - p, edf))

@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import lfilter
 
 from gyrocal.model.allan import FLICKER_FLOOR, gauss_markov_avar
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
@@ -268,6 +267,8 @@ class _NoiseState:
         """The bias-instability part of the drift for the next n samples, (n, 3) [deg/s]."""
         if not np.any(self.bi != 0):
             return 0.0
+        from scipy.signal import lfilter  # lazy: the default (noise-free) unit runs on a lean install
+
         w = self.rng_fl.normal(0.0, 1.0, (n, *self.fl_sig.shape))
         out = np.zeros((n, 3))
         for k, phi in enumerate(self.fl_phi):
@@ -280,6 +281,10 @@ class _NoiseState:
     def coloured(self, white: np.ndarray) -> np.ndarray:
         """White noise (n, 3) [deg/s] through the sensor filter, plus the Gauss-Markov noise."""
         out = white
+        if self.lp_a <= 0 and not np.any(self.gm != 0):
+            return out
+        from scipy.signal import lfilter  # lazy: the default (noise-free) unit runs on a lean install
+
         if self.lp_a > 0:
             a = self.lp_a
             out = lfilter([a], [1.0, a - 1.0], white, axis=0, zi=((1 - a) * self.lp_y)[None, :])[0]
