@@ -41,6 +41,11 @@ class StillRule:
     shorter than ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
     no gyro is that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro
     mean exceeds ``max_rate_dps`` on any axis.
+
+    A rest therefore yields still samples only when it lasts at least window + 2 margins + min_run
+    (1.1 s with the defaults). The margins and minimum length are what hand-held real data needs
+    (mikoff: shorter ones let settling motion in, and ``gyrocal analyze`` then mistakes a warm-up for
+    a random walk); a unit whose schedule rests for less sets ``still.margin_s`` / ``min_run_s`` lower.
     """
 
     window_s: float = 0.4
