@@ -140,10 +140,17 @@ def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> tuple[np.ndarr
     return mean, std, astd
 
 
-def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: StillRule) -> QuietLevels:
-    """The quiet level from rolling statistics (rows: samples, or a decimated history of them)."""
+def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: StillRule,
+                 accel_quantum_g: np.ndarray | None = None) -> QuietLevels:
+    """The quiet level from rolling statistics (rows: samples, or a decimated history of them).
+
+    The accelerometer's quiet level is floored at half its quantum (``accel_quantum_g``, (3,) [g]): a
+    quantised still axis (CAN: 1 mg) has a rolling std of exactly 0 in many windows, which would
+    otherwise make nothing still.
+    """
     gq = np.maximum(np.quantile(std, rule.quantile, axis=0), 1e-9)
-    aq = np.maximum(np.quantile(astd, rule.quantile, axis=0), 1e-6)
+    floor = np.maximum(1e-6, 0.5 * (np.zeros(3) if accel_quantum_g is None else accel_quantum_g))
+    aq = np.maximum(np.quantile(astd, rule.quantile, axis=0), floor)
     centre = np.empty(3)
     slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
     for k in range(3):
@@ -178,9 +185,17 @@ def detect_still(
     gyro = np.column_stack([np.asarray(columns[f"w{a}"], dtype=float) for a in AXES])
     accel = np.column_stack([np.asarray(columns[f"a{a}"], dtype=float) for a in AXES])
     mean, std, astd = rolling_stats(gyro, accel, rule.window(rate_hz))
-    ok = quiet_mask(mean, std, astd, quiet_levels(mean, std, astd, rule), rule)
+    quantum = np.array([_quantum(accel[:, k]) for k in range(3)])
+    ok = quiet_mask(mean, std, astd, quiet_levels(mean, std, astd, rule, quantum), rule)
     session = np.asarray(columns.get("session", np.zeros(n)))
     return _shrink(ok, session, rule.margin(rate_hz), rule.min_run(rate_hz))
+
+
+def _quantum(x: np.ndarray) -> float:
+    """The smallest step between distinct values (the quantisation LSB), from up to 200k samples."""
+    steps = np.diff(np.unique(x[:200_000]))
+    steps = steps[steps > 0]
+    return float(steps.min()) if steps.size else 0.0
 
 
 def _shrink(mask: np.ndarray, session: np.ndarray, margin: int, min_len: int) -> np.ndarray:
@@ -242,6 +257,7 @@ class StreamingStill:
         self._run_start: int | None = None  # global start of the stretch open at _q_rows[0]
         self._empty: np.ndarray | None = None
         self._levels_at = -(1 << 62)  # _stat_index when the levels were last computed
+        self._quantum = np.full(3, np.inf)  # smallest accel step seen per axis [g] (quantisation)
 
     def reset(self) -> None:
         self.__init__(self.rate_hz, self.rule)  # type: ignore[misc]
@@ -264,6 +280,8 @@ class StreamingStill:
             part = rows[lo:n]
             gyro = np.column_stack([part[f"w{a}"] for a in AXES]).astype(float)
             accel = np.column_stack([part[f"a{a}"] for a in AXES]).astype(float)
+            for k in range(3):
+                self._quantum[k] = min(self._quantum[k], _quantum(accel[:, k]) or np.inf)
             # centred windows: rows before _stat_from are kept as look-behind for this purpose
             mean, std, astd = rolling_stats(gyro, accel, self.w)
             sel = slice(self._stat_from - lo, upto - lo)
@@ -282,7 +300,8 @@ class StreamingStill:
         if self._pending_stats:
             if self._stat_index - self._levels_at >= max(1, self.rate_hz * 0.25) or final:
                 h = np.array(self._hist) if self._hist else np.vstack(self._pending_stats)
-                self.levels = quiet_levels(h[:, 0:3], h[:, 3:6], h[:, 6:9], self.rule)
+                quantum = np.where(np.isfinite(self._quantum), self._quantum, 0.0)
+                self.levels = quiet_levels(h[:, 0:3], h[:, 3:6], h[:, 6:9], self.rule, quantum)
                 self._levels_at = self._stat_index
             assert self.levels is not None
             st = np.vstack(self._pending_stats)
