@@ -122,6 +122,14 @@ _BAD_VALUES: dict[str, list[object]] = {
     "still.window_s": [0, -0.2],
     "still.gyro_std_dps": [0, -0.05],
     "still.accel_tol_g": [0, 2],
+    "still.k_std": [1, 0.5],
+    "still.margin_s": [-0.1],
+    "still.min_run_s": [0, -1],
+    "still.learn_s": [0],
+    "still.memory_s": [0],
+    "link.can_node_id": [-1, 16],
+    "push.target_drift_dph": [0, -1],
+    "push.min_cut": [1, 0.5],
 }
 
 

@@ -33,6 +33,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
                 "interface/channel left out come from python-can's config (CAN_INTERFACE, ~/.canrc)"),
         "mavlink": ((dict,), {}, "write MAVLink link options, e.g. {autopilot: px4} (docs/mavlink.md)"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
+        "can_node_id": ((int,), 0, "write the unit's CAN node id, an integer 0 to 15"),
     },
     "virtual_unit": {
         "enabled": ((bool,), False, "write true or false"),
@@ -59,6 +60,11 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "push": {
         "ack_timeout_s": ((int, float), 1.0, "write a timeout in seconds"),
         "retries": ((int,), 3, "write the number of attempts, >= 1"),
+        "target_drift_dph": ((int, float), 0.2,
+                             "write the predicted drift RMS [deg/h] below which a set is pushed"),
+        "min_cut": ((int, float), 20.0,
+                    "write the factor by which the predicted drift left must undercut the drift removed"),
+        "bias_first": ((bool,), True, "write true or false: push a bias-only set first after a switch-on"),
     },
     "monitor": {
         "alarm_ratio": ((int, float), 3.0, "write a ratio > 1"),
@@ -66,9 +72,15 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "alarm_floor_dps": ((int, float), 0.002, "write the smallest residual [deg/s] that can alarm"),
     },
     "still": {
-        "window_s": ((int, float), 0.2, "write the still-detector window in seconds"),
-        "gyro_std_dps": ((int, float), 0.05, "write the gyro std [deg/s] below which the unit is still"),
-        "accel_tol_g": ((int, float), 0.05, "write the tolerance [g] on |a| = 1 g when still"),
+        "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
+        "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
+        "margin_s": ((int, float), 0.1, "write the seconds cut from each end of a still stretch"),
+        "min_run_s": ((int, float), 0.5, "write the shortest still stretch kept, in seconds"),
+        "learn_s": ((int, float), 1.0, "write the seconds after switch-on that teach the noise level"),
+        "memory_s": ((int, float), 120.0, "write the seconds of history the noise level tracks"),
+        # retired absolute thresholds: accepted and ignored (the engine logs what replaced them)
+        "gyro_std_dps": ((int, float, type(None)), None, "delete it; still.k_std replaced it"),
+        "accel_tol_g": ((int, float, type(None)), None, "delete it; still.k_std replaced it"),
     },
 }
 
@@ -129,8 +141,16 @@ _RANGES: dict[str, Range] = {
     "monitor.window_s": _gt(0, 86_400, "s"),
     "monitor.alarm_floor_dps": Range(0, 10, unit="deg/s"),
     "still.window_s": _gt(0, 60, "s"),
-    "still.gyro_std_dps": _gt(0, 100, "deg/s"),
-    "still.accel_tol_g": _gt(0, 1, "g"),
+    "still.k_std": _gt(1, 1000),
+    "still.margin_s": Range(0, 60, unit="s"),
+    "still.min_run_s": _gt(0, 3600, "s"),
+    "still.learn_s": _gt(0, 3600, "s"),
+    "still.memory_s": _gt(0, 86_400, "s"),
+    "still.gyro_std_dps": _gt(0, 100, "deg/s"),  # retired (accepted, ignored): still.k_std replaced it
+    "still.accel_tol_g": _gt(0, 1, "g"),  # retired (accepted, ignored)
+    "link.can_node_id": Range(0, 15),
+    "push.target_drift_dph": _gt(0, 1e6, "deg/h"),
+    "push.min_cut": _gt(1, 1e6),
 }
 
 _TOP = {

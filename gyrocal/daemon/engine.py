@@ -51,7 +51,7 @@ from gyrocal.daemon.reconcile import close_abandoned
 from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session
-from gyrocal.daemon.stillness import StillConfig, StillDetector
+from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
@@ -122,16 +122,18 @@ class Engine(CommandsMixin):
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _new_detector(self, rate_hz: float) -> StillDetector:
-        s = self.cfg.still
-        return StillDetector(StillConfig(int(max(8, s["window_s"] * rate_hz)), s["gyro_std_dps"],
-                                         s["accel_tol_g"]))
+        for key, instead in RETIRED_FIELDS.items():
+            if self.cfg.still.get(key) is not None:
+                log.warning("%s: still.%s is ignored: the still detector's thresholds are relative "
+                            "now; use %s", self.cfg.source, key, instead)
+        return StillDetector.for_rate(rate_hz, self.cfg.still)
 
     def _driver_cfg(self) -> dict[str, Any]:
         """The drivers' config mapping from the daemon's ``link`` section."""
         c = self.link_cfg
         backoff = {"backoff_max_s": min(float(c.get("reconnect_max_s", RECONNECT_MAX_S)), RECONNECT_MAX_S)}
         if c["kind"] == "can":
-            return {"kind": "can", "bus": dict(c["can"]), **backoff}
+            return {"kind": "can", "bus": dict(c["can"]), "node_id": int(c.get("can_node_id", 0)), **backoff}
         if c["kind"] == "mavlink":  # options under link.mavlink; docs/mavlink.md
             mav = {"state_file": str(self.cfg.state_dir / "mavlink.json"), **dict(c.get("mavlink") or {})}
             return {"kind": "mavlink", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **mav,
@@ -354,8 +356,8 @@ class Engine(CommandsMixin):
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
         prior = self.store.latest(hello.serial, acked_only=True)
-        learner = make_learner(self.cfg, prior)
         rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
+        learner = make_learner(self.cfg, prior, rate)
         self.detector = self._new_detector(rate)
         self._seq_session_at = None
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
@@ -440,6 +442,9 @@ class Engine(CommandsMixin):
         else:
             status = self.session.status()
             status["store_view"] = self._store_view(self.session.hello.serial)
+            status["still"] = self.detector.status()
+            if not status.get("trained_samples") and status["still"].get("why"):
+                status["reason"] = f"{status['reason']}; {status['still']['why']}"  # why nothing is learnt
         silent = connected and age is not None and age > SILENT_AFTER_S
         if not connected or (age is None and self.session is None and not link_stats.get("frames")):
             status["session_state"] = status["state"]

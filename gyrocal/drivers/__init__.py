@@ -119,6 +119,9 @@ def _can(where: str, rest: dict[str, Any], ring: Any, on_control: Any, on_event:
     dbc = rest.pop("dbc", None)
     if dbc is not None and not isinstance(dbc, str):
         raise ConfigError(f"{where}: field 'dbc' must be a file path")
+    node_id = rest.pop("node_id", 0)
+    if not isinstance(node_id, int) or isinstance(node_id, bool) or not 0 <= node_id <= 15:
+        raise ConfigError(f"{where}: field 'node_id' is {node_id!r}; write the unit's CAN node id, 0 to 15")
     bus = rest.pop("bus", None)
     if bus is None:
         bus = rest
@@ -128,4 +131,4 @@ def _can(where: str, rest: dict[str, Any], ring: Any, on_control: Any, on_event:
         kwargs = check_bus_kwargs(dict(bus) if isinstance(bus, Mapping) else bus)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from err
-    return CanLink(kwargs, ring, on_control, on_event, dbc_path=dbc, **common)
+    return CanLink(kwargs, ring, on_control, on_event, dbc_path=dbc, node_id=node_id, **common)

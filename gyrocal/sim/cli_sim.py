@@ -26,10 +26,11 @@ from typing import Any
 import numpy as np
 
 from gyrocal.errors import ConfigError
+from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
 from gyrocal.sim.schedule import load_schedule, tumble
-from gyrocal.sim.truth import NOISE_FIELDS, TruthModel, set_noise
+from gyrocal.sim.truth import NOISE_FIELDS, set_noise
 from gyrocal.sim.unit import Faults, VirtualUnit
 
 log = logging.getLogger(__name__)
@@ -75,6 +76,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     b.add_argument("--can-config", metavar="JSON",
                    help="can.Bus keyword arguments as JSON text or a .json file")
     p.add_argument("--dbc", metavar="FILE.dbc", help="CAN database (default: the shipped one)")
+    p.add_argument("--can-node-id", type=int, default=0, metavar="N",
+                   help="the unit's CAN node id 0..15 (default 0; frame id = DBC id + N)")
+    p.add_argument("--grade", choices=("demo", "fibre", "tactical", "consumer"), default="demo",
+                   help="unit grade preset: noise, bias instability, temperature sensitivity "
+                        "(default demo: the seed-000 unit of the demo; see gyrocal/sim/grades.py)")
     f = p.add_argument_group("fault injection")
     f.add_argument("--nak-next", type=int, default=0, metavar="N", help="NAK the next N coefficient writes")
     f.add_argument("--drop-acks", type=int, default=0, metavar="N", help="ignore the next N writes silently")
@@ -150,6 +156,8 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError(f"--garbage-rate {args.garbage_rate:g}: must be a probability in [0, 1]")
     if args.link == "can" and args.pty_link:
         raise ConfigError("--pty-link only applies to --link pty")
+    if not 0 <= args.can_node_id <= 15:
+        raise ConfigError(f"--can-node-id {args.can_node_id}: must be a CAN node id 0 to 15")
 
 
 def _load_flash(unit: VirtualUnit, path: str | None) -> None:
@@ -178,7 +186,7 @@ def main(args: argparse.Namespace) -> int:
                     cycle_after_ack=args.cycle_after_ack, no_coeff_read=args.no_coeff_read,
                     seq_outlier_every_s=args.seq_outlier_every, silence_at_s=args.silence_at,
                     silence_for_s=args.silence_for)
-    truth = set_noise(TruthModel(), args.noise)
+    truth = set_noise(grade_truth(args.grade, args.rate), args.noise)  # a grade, then --noise on top
     unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
@@ -210,7 +218,7 @@ def _open_transport(args: argparse.Namespace) -> Any:
     if args.link == "pty":
         return PtyTransport(args.pty_link, garbage_rate=args.garbage_rate,
                             rng=np.random.default_rng([args.seed, 0x6A7B]))
-    return CanTransport(can_bus_kwargs(args), dbc_path=args.dbc)
+    return CanTransport(can_bus_kwargs(args), dbc_path=args.dbc, node_id=args.can_node_id)
 
 
 def _install_signals(runner: Runner) -> None:
