@@ -42,6 +42,7 @@ class NoiseModel:
     white_var: float
     gm: list[tuple[float, float]] = field(default_factory=list)  # (correlation time [s], variance)
     walk_q: float = 0.0  # [(deg/s)^2 / s]
+    misfit: float = 0.0  # weighted squared misfit of the Allan fit (about one per octave when right)
 
     def phi(self, tau_s: float) -> float:
         return float(np.exp(-1.0 / (self.rate_hz * tau_s)))
@@ -163,12 +164,12 @@ def bank_taus(rate_hz: float, n: int) -> list[float]:
     return taus
 
 
-def fit_noise(x: np.ndarray, rate_hz: float, slow: bool = True) -> NoiseModel:
+def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = ()) -> NoiseModel:
     """Fit the error model to a residual series x (N,) [deg/s] by NNLS on its Allan variance.
 
     Each octave's relative error is about 1 / sqrt(N / m); the rows are weighted accordingly, so
     the short taus (many clusters) fix the white level and the colour, the long ones the walk.
-    ``slow=False`` leaves out the flicker bank and the walk (the white-noise-plus-colour model).
+    ``drop`` leaves components out ("colour", "flicker", "walk"), to measure what each is worth.
     """
     x = np.asarray(x, float)
     n = x.size
@@ -179,14 +180,28 @@ def fit_noise(x: np.ndarray, rate_hz: float, slow: bool = True) -> NoiseModel:
     taus = bank_taus(rate_hz, n)
     shapes, _ = avar_shapes(m, rate_hz, taus)
     keep = np.ones(shapes.shape[1], dtype=bool)
-    if not slow:
-        keep[1 + len(FAST_TAUS_SAMPLES):] = False
+    nf = len(FAST_TAUS_SAMPLES)
+    if "colour" in drop:
+        keep[1 : 1 + nf] = False
+    if "flicker" in drop:
+        keep[1 + nf : -1] = False
+    if "walk" in drop:
+        keep[-1] = False
     w = np.sqrt(n / m) / meas
     a = shapes[:, keep] * w[:, None]
     scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
-    v, _ = optimize.nnls(a / scale, w * meas)
+    v, rnorm = optimize.nnls(a / scale, w * meas)
     v = v / scale
     full = np.zeros(shapes.shape[1])
     full[keep] = v
     gm = [(t, float(vv)) for t, vv in zip(taus, full[1:-1], strict=True) if vv > 0]
-    return NoiseModel(rate_hz, float(full[0]), gm, float(full[-1]))
+    return NoiseModel(rate_hz, float(full[0]), gm, float(full[-1]), float(rnorm**2))
+
+
+def component_need(x: np.ndarray, rate_hz: float) -> dict[str, float]:
+    """How much worse the Allan fit gets without each component (increase of the weighted misfit).
+
+    About 1 per octave is noise; a component a log really has costs tens to thousands.
+    """
+    full = fit_noise(x, rate_hz).misfit
+    return {c: fit_noise(x, rate_hz, (c,)).misfit - full for c in ("colour", "flicker", "walk")}
