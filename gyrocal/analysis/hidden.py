@@ -106,6 +106,43 @@ def generate(
     return {k: cols[k] for k in keep}, h
 
 
+BACKGROUNDS = ("white", "coloured", "flicker", "quantised", "real_like")
+
+
+def add_background(cols: dict[str, np.ndarray], kind: str, seed: int, level_dps: float = 0.002
+                   ) -> dict[str, np.ndarray]:
+    """Add a non-white noise background to the gyro columns (a null for the false-alarm rate).
+
+    coloured: a first-order low-pass (Gauss-Markov, 2-sample correlation time) of the white noise
+    level, as a sensor DLPF makes it; flicker: a bank of Gauss-Markov processes at 3, 30 and 300 s
+    (a bias-instability floor of about the white level at 1 s); quantised: the output rounded to
+    a step of 1.5 x the white level (a 16-bit MEMS at its finest range); real_like: all three.
+    """
+    from gyrocal.analysis.noisemodel import NoiseModel
+
+    out = dict(cols)
+    t, session = cols["t"], cols["session"]
+    rate = 1.0 / float(np.median(np.diff(t)))
+    rng = np.random.default_rng([seed, 0xBA6])
+    gm: list[tuple[float, float]] = []
+    if kind in ("coloured", "real_like"):
+        gm.append((2.0 / rate, (1.5 * level_dps) ** 2))
+    if kind in ("flicker", "real_like"):
+        gm += [(3.0, (0.4 * level_dps) ** 2), (30.0, (0.4 * level_dps) ** 2), (300.0, (0.4 * level_dps) ** 2)]
+    model = NoiseModel(rate, 0.0, gm, 0.0)
+    for a in AXES:
+        w = out[f"w{a}"].copy()
+        if gm:
+            for s in np.unique(session):
+                m = session == s
+                w[m] += model.simulate(int(m.sum()), rng)
+        if kind in ("quantised", "real_like"):
+            step = 1.5 * level_dps
+            w = np.round(w / step) * step
+        out[f"w{a}"] = w
+    return out
+
+
 def write_hidden_log(path: str | Path, seed: int, **kwargs) -> Hidden:
     """Generate with ``generate`` and write a Contract 1 log; returns what was hidden."""
     cols, h = generate(seed, **kwargs)

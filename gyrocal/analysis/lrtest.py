@@ -78,7 +78,8 @@ def build_axis_lr(prob: Problem, cands: list[Candidate], axis: int) -> AxisLR:
     x = np.column_stack(blocks)
     y = prob.y[:, axis]
     beta, rank = lstsq(x, y)
-    model = fit_noise(y - x @ beta, prob.rate_hz)
+    b0, _ = lstsq(prob.base, y)
+    model = fit_noise(y - prob.base @ b0, prob.rate_hz)
     gls = StateSpaceGLS(model, prob.cols["t"], prob.usable.session)
     xy = np.column_stack([x, y])
     gram = gls.gram(xy)
