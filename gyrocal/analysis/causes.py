@@ -116,8 +116,9 @@ def select_axis(
         if progress:
             progress(f"axis {AXES[axis]}: {c.cause} explains {frac:.1%} (p={p:.2g})")
     walk = next((c for c in cands if c.cause == "random_walk"), None)
-    if walk is not None and (lr.model.slow or lr.model.walk_q > 0):
-        r_new = heldout_walk(prob, lr.model, axis, chosen)
+    model = lr.model_for([c.cause for c in chosen])
+    if walk is not None and (model.slow or model.walk_q > 0):
+        r_new = heldout_walk(prob, model, axis, chosen)
         cmp = compare(prob, r_cur, r_new, tau_s)
         frac = cmp.reduction / _ms(prob, res.r_base, tau_s)
         of_left = cmp.reduction / _ms(prob, r_cur, tau_s)
@@ -146,7 +147,7 @@ def fit_full(prob: Problem, axis: int, chosen: list[Candidate], lr: AxisLR | Non
     regs = [c for c in chosen if c.cause != "random_walk"]
     x = np.column_stack([prob.base, *(c.full for c in regs)])
     if lr is not None and len(regs) < len(chosen):
-        beta, slow = smooth_full(prob, lr.model, axis, x)
+        beta, slow = smooth_full(prob, lr.model_for([c.cause for c in regs]), axis, x)
         return beta, prob.y[:, axis] - x @ beta - slow
     beta, _ = lstsq(x, prob.y[:, axis])
     return beta, prob.y[:, axis] - x @ beta

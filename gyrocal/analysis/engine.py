@@ -107,7 +107,8 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
     resid_reg = np.empty_like(prob.y)  # extended regressions only (no slow states)
     coefs: dict[str, dict[str, np.ndarray]] = {}
     contrib: dict[str, np.ndarray] = {}
-    models = {a: lrs[k].model for k, a in enumerate(AXES)}
+    models = {a: lrs[k].model_for([c.cause for c in chosen[a] if c.cause != "random_walk"])
+              for k, a in enumerate(AXES)}
     for k, a in enumerate(AXES):
         _, resid_base[:, k] = fit_full(prob, k, [])
         regs = [c for c in chosen[a] if c.cause != "random_walk"]

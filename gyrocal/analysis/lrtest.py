@@ -9,16 +9,14 @@ each candidate's columns are tested by generalised least squares under it:
 
     D = Q(model so far) - Q(model so far + candidate),   Q = min_beta (y - X beta)' V^-1 (y - X beta)
 
-D is chi-square with the candidate's parameter count under the null when V is right. ``disp``, the
-larger of 1 and Q(all) / (M - rank), guards against a V that is too optimistic: D is divided by it.
-A nonlinear choice made on the data pays a look-elsewhere factor (the number of independent
-frequencies searched for a periodic cause, the warm-up grid). One Gram matrix x' V^-1 x of every
-column serves every nested model, so the whole forward selection costs one banded solve per axis.
+D is chi-square with the candidate's parameter count under the null when V is right. A nonlinear
+choice made on the data pays a look-elsewhere factor (the number of independent frequencies
+searched for a periodic cause, the warm-up grid). Each test costs one banded solve (linear in M).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import stats
@@ -28,34 +26,84 @@ from gyrocal.analysis.candidates import F_MIN_HZ, WARMUP_TAUS_S, Candidate
 from gyrocal.analysis.gls import StateSpaceGLS
 from gyrocal.analysis.noisemodel import NoiseModel, fit_noise
 
+FGLS_ROUNDS = 2
+UPPER_SIGMA = 2.0
+"""The test's error model fits each Allan octave's upper 2-sigma limit (see ``fit_noise``)."""
+
+
+def gls_fit(prob: Problem, model: NoiseModel, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """GLS coefficients of y (M,) on x (M, P) under an error model."""
+    gls = StateSpaceGLS(model, prob.cols["t"], prob.usable.session)
+    g = gls.gram(np.column_stack([x, y]))
+    return gram_solve(g[:-1, :-1], g[:-1, -1], prob.n)
+
 
 @dataclass
 class AxisLR:
-    """Gram matrix of [baseline, every candidate's columns, y] under one axis' error model."""
+    """The likelihood-ratio test of one axis: columns per cause and error models per nested model."""
 
-    gram: np.ndarray
-    cols: dict[str, np.ndarray]  # cause -> column indices into gram
-    n_base: int
-    n: int
-    disp: float
-    model: NoiseModel
+    prob: Problem
+    axis: int
+    cols: dict[str, np.ndarray]  # cause -> design columns (M, p)
     look_elsewhere: dict[str, float]
+    models: dict[tuple[str, ...], NoiseModel] = field(default_factory=dict)
 
-    def q(self, causes: list[str]) -> float:
-        """Q of baseline + the causes' columns [dimensionless, chi-square scale]."""
-        idx = np.concatenate([np.arange(self.n_base), *[self.cols[c] for c in causes]]).astype(int)
-        iy = self.gram.shape[0] - 1
-        g = self.gram[np.ix_(idx, idx)]
-        b = self.gram[idx, iy]
-        beta = gram_solve(g, b, self.n)
-        return float(self.gram[iy, iy] - b @ beta)
+    def design(self, causes: list[str] | tuple[str, ...]) -> np.ndarray:
+        return np.column_stack([self.prob.base, *[self.cols[c] for c in causes]])
+
+    def model_for(self, causes: list[str] | tuple[str, ...]) -> NoiseModel:
+        """The error model of baseline + ``causes``, by feasible GLS (cached).
+
+        Start from the model fitted on the baseline residual; estimate the coefficients by GLS under
+        it (GLS leaves wander to the noise, where least squares would let a trend column soak up a
+        slow flicker); refit the error model on that residual; repeat ``FGLS_ROUNDS`` times. A real
+        effect is then removed before the noise is fitted (it is not taken for a walk), and a
+        flicker is not removed by a column that only happens to look like it.
+        """
+        key = tuple(causes)
+        if key not in self.models:
+            y = self.prob.y[:, self.axis]
+            if not key:
+                beta, _ = lstsq(self.prob.base, y)
+                self.models[key] = fit_noise(y - self.prob.base @ beta, self.prob.rate_hz, upper=UPPER_SIGMA)
+            else:
+                model = self.model_for(())
+                x = self.design(key)
+                for _ in range(FGLS_ROUNDS):
+                    beta = gls_fit(self.prob, model, x, y)
+                    model = fit_noise(y - x @ beta, self.prob.rate_hz, upper=UPPER_SIGMA)
+                self.models[key] = model
+        return self.models[key]
+
+    @property
+    def model(self) -> NoiseModel:
+        return self.model_for(())
 
     def test(self, chosen: list[str], cause: str) -> tuple[float, float]:
-        """(D / disp, p-value with the look-elsewhere factor) for adding ``cause`` to ``chosen``."""
-        d = (self.q(chosen) - self.q([*chosen, cause])) / self.disp
-        k = max(int(self.cols[cause].size), 1)
+        """(D, p-value with the look-elsewhere factor) for adding ``cause`` to ``chosen``.
+
+        The error model is the one fitted under the alternative (chosen + cause) by feasible GLS:
+        an effect left in the residual would otherwise be taken for wander (a warm-up for a walk).
+        Two-sided in the sense of a chi-square on the candidate's p columns.
+        """
+        model = self.model_for([*chosen, cause])
+        gls = StateSpaceGLS(model, self.prob.cols["t"], self.prob.usable.session)
+        y = self.prob.y[:, self.axis]
+        g = gls.gram(np.column_stack([self.design([*chosen, cause]), y]))
+        n0 = self.prob.base.shape[1] + sum(self.cols[c].shape[1] for c in chosen)
+        d = _q(g, np.arange(n0), self.prob.n) - _q(g, np.arange(g.shape[0] - 1), self.prob.n)
+        k = max(int(self.cols[cause].shape[1]), 1)
         p = float(min(1.0, self.look_elsewhere.get(cause, 1.0) * stats.chi2.sf(max(d, 0.0), k)))
         return float(d), p
+
+
+def _q(gram: np.ndarray, idx: np.ndarray, n: int) -> float:
+    """GLS residual quadratic form of y on the columns idx (y is the Gram's last column)."""
+    iy = gram.shape[0] - 1
+    g = gram[np.ix_(idx, idx)]
+    b = gram[idx, iy]
+    beta = gram_solve(g, b, n)
+    return float(gram[iy, iy] - b @ beta)
 
 
 def search_factor(prob: Problem, cause: str) -> float:
@@ -72,26 +120,10 @@ def search_factor(prob: Problem, cause: str) -> float:
 
 
 def build_axis_lr(prob: Problem, cands: list[Candidate], axis: int) -> AxisLR:
-    """Fit the error model on the largest model's residual and form the GLS Gram matrix."""
+    """The test of one axis over the regression candidates (the walk is a state, not a column)."""
     regs = [c for c in cands if c.cause != "random_walk" and c.full.shape[1]]
-    blocks = [prob.base, *[c.full for c in regs]]
-    x = np.column_stack(blocks)
-    y = prob.y[:, axis]
-    beta, rank = lstsq(x, y)
-    b0, _ = lstsq(prob.base, y)
-    model = fit_noise(y - prob.base @ b0, prob.rate_hz)
-    gls = StateSpaceGLS(model, prob.cols["t"], prob.usable.session)
-    xy = np.column_stack([x, y])
-    gram = gls.gram(xy)
-    cols, k = {}, prob.base.shape[1]
-    for c in regs:
-        cols[c.cause] = np.arange(k, k + c.full.shape[1])
-        k += c.full.shape[1]
-    lr = AxisLR(gram, cols, prob.base.shape[1], prob.n, 1.0, model,
-                {c.cause: search_factor(prob, c.cause) for c in regs})
-    q_all = lr.q([c.cause for c in regs])
-    lr.disp = max(1.0, q_all / max(prob.n - rank, 1))
-    return lr
+    return AxisLR(prob, axis, {c.cause: c.full for c in regs},
+                  {c.cause: search_factor(prob, c.cause) for c in regs})
 
 
 def heldout_walk(prob: Problem, model: NoiseModel, axis: int, chosen: list[Candidate]) -> np.ndarray:

@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 
 FAST_SAMPLES = 4.0
 """Gauss-Markov members with a correlation time up to this many samples are 'colour'."""
@@ -164,12 +164,15 @@ def bank_taus(rate_hz: float, n: int) -> list[float]:
     return taus
 
 
-def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = ()) -> NoiseModel:
+def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: float = 0.0) -> NoiseModel:
     """Fit the error model to a residual series x (N,) [deg/s] by NNLS on its Allan variance.
 
     Each octave's relative error is about 1 / sqrt(N / m); the rows are weighted accordingly, so
     the short taus (many clusters) fix the white level and the colour, the long ones the walk.
     ``drop`` leaves components out ("colour", "flicker", "walk"), to measure what each is worth.
+    ``upper`` > 0 fits the upper confidence limit of each octave instead (that many sigmas of the
+    chi-square with the octave's degrees of freedom): the test's conservative model, because a short
+    log's long-tau octaves are few and can hide a slow wander that the test would take for an effect.
     """
     x = np.asarray(x, float)
     n = x.size
@@ -177,6 +180,9 @@ def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = ()) -> Nois
     meas = overlapping_avar(x, m)
     ok = np.isfinite(meas) & (meas > 0)
     m, meas = m[ok], meas[ok]
+    if upper > 0:
+        edf = np.maximum(1.0, 3.0 * (n - 1) / (2.0 * m) - 2.0 * (n - 2) / n)
+        meas = meas * edf / stats.chi2.ppf(stats.norm.sf(upper), edf)
     taus = bank_taus(rate_hz, n)
     shapes, _ = avar_shapes(m, rate_hz, taus)
     keep = np.ones(shapes.shape[1], dtype=bool)
