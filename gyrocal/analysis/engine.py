@@ -29,6 +29,7 @@ from gyrocal.analysis.lrtest import AxisLR, build_axis_lr
 from gyrocal.analysis.noisecauses import noise_findings
 from gyrocal.analysis.noisemodel import NoiseModel
 from gyrocal.analysis.segments import AXES, usable_samples
+from gyrocal.analysis.timestamps import describe, retime
 from gyrocal.errors import GyrocalError
 from gyrocal.logformat import LogData
 from gyrocal.model.terms import SEED000_TERMS, derived_columns
@@ -77,7 +78,10 @@ def _select(prob: Problem, cands: list[Candidate], tau_s: float, say: Callable[[
 def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: int = 0) -> Analysis:
     """Run the whole analysis on a log (Contract 1) and return the Contract 2 result."""
     say = progress or (lambda _msg: None)
-    cols = derived_columns(log.columns)
+    columns, retimed = retime(log.columns)
+    if retimed:
+        say(describe(retimed))
+    cols = derived_columns(columns)
     usable = usable_samples(cols)
     if usable.index.size < 100:
         raise AnalysisError(
@@ -144,6 +148,9 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
     fid = fidelity_block(prob, prob.y - resid_base, prob.y - resid_reg, sigma_diff,
                          [models[a] for a in AXES], seed)
     findings += noise_findings(prob, resid_reg, models, fid)
+    if retimed:
+        for f in findings:
+            f["evidence"] += " " + describe(retimed)
     stab = {"before": {}, "after": {}}
     for a in AXES:
         stab["before"][a] = float(np.min(allan["residual_before"][a]))
@@ -163,7 +170,7 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
         "samples": {"total": len(log), "used": int(usable.index.size), "runs": usable.n_runs,
                     "rate_hz": usable.rate_hz, "sessions": int(np.unique(usable.session).size),
                     "with_reference": usable.with_reference, "block_s": prob.block_s,
-                    "folds": prob.n_folds},
+                    "folds": prob.n_folds, "retimed": retimed},
         "allan": allan,
         "bias_stability_dps": stab,
         "fidelity": fid,
