@@ -27,7 +27,7 @@ from gyrocal.analysis.fidelity import fidelity_block
 from gyrocal.analysis.holdout import ALPHA, FAMILY_ALPHA, MIN_FRACTION, heldout_residual, rms_tau
 from gyrocal.analysis.lrtest import AxisLR, build_axis_lr
 from gyrocal.analysis.noisecauses import noise_findings
-from gyrocal.analysis.noisemodel import NoiseModel
+from gyrocal.analysis.noisemodel import NoiseModel, fit_noise
 from gyrocal.analysis.segments import AXES, usable_samples
 from gyrocal.analysis.timestamps import describe, retime
 from gyrocal.errors import GyrocalError
@@ -111,8 +111,6 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
     resid_reg = np.empty_like(prob.y)  # extended regressions only (no slow states)
     coefs: dict[str, dict[str, np.ndarray]] = {}
     contrib: dict[str, np.ndarray] = {}
-    models = {a: lrs[k].model_for([c.cause for c in chosen[a] if c.cause != "random_walk"])
-              for k, a in enumerate(AXES)}
     for k, a in enumerate(AXES):
         _, resid_base[:, k] = fit_full(prob, k, [])
         regs = [c for c in chosen[a] if c.cause != "random_walk"]
@@ -123,6 +121,9 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
             contrib.setdefault(cause, np.zeros_like(prob.y))[:, k] = by_name[cause].full @ b
         if len(regs) < len(chosen[a]):
             contrib.setdefault("random_walk", np.zeros_like(prob.y))[:, k] = resid_reg[:, k] - resid_ext[:, k]
+    # the simulation's error model: the point estimate on the extended regressions' residual (the
+    # test's models fit each Allan octave's upper limit, which is right for a test, not for a twin)
+    models = {a: fit_noise(resid_reg[:, k], prob.rate_hz) for k, a in enumerate(AXES)}
     findings = _findings(prob, per_axis, by_name, coefs, resid_base, models)
     ext_terms = list(SEED000_TERMS)
     for c in cands:
