@@ -175,3 +175,46 @@ def inject(columns: Mapping[str, np.ndarray], cause: str, amplitude_dps: float, 
     for a in axes:
         out[f"w{a}"] = out[f"w{a}"] + sig
     return out
+
+
+@dataclass
+class HardCase:
+    """One log of the harder hidden set: causes, size in units of the per-sample noise, background."""
+
+    seed: int
+    causes: list[str]
+    size_sigma: float
+    background: str = "white"
+
+
+HARD_SET: tuple[HardCase, ...] = (
+    *(HardCase(300 + i, [c], s) for i, (c, s) in enumerate(zip(
+        ("temperature", "temperature_rate", "warmup", "periodic", "random_walk", "scale_factor"),
+        (0.1, 0.2, 0.3, 0.1, 0.2, 0.3), strict=True))),
+    HardCase(310, ["temperature", "temperature_rate"], 0.3),
+    HardCase(311, ["periodic", "warmup"], 0.2),
+    HardCase(312, ["warmup"], 0.3, "flicker"),
+    HardCase(313, ["periodic"], 0.2, "real_like"),
+    HardCase(314, ["temperature"], 0.3, "quantised"),
+    HardCase(320, [], 0.0, "coloured"),
+    HardCase(321, [], 0.0, "quantised"),
+    HardCase(322, [], 0.0, "flicker"),
+    HardCase(323, [], 0.0, "real_like"),
+)
+"""Effects at 0.1-0.3 sigma, confounded pairs, non-white backgrounds and nulls, on long sessions
+(2 x 600 s at 25 Hz); sigma = the truth model's white noise per sample (0.002 deg/s)."""
+
+
+def generate_hard(case: HardCase, session_s: float = 600.0, n_sessions: int = 2
+                  ) -> tuple[dict[str, np.ndarray], Hidden]:
+    """The columns of one hard case: each effect rescaled so its size (``Hidden.size``) is
+    ``size_sigma`` x the white noise per sample, then the background added."""
+    sigma = TruthModel().noise_dps
+    scales = None
+    if case.causes:
+        _, h = generate(case.seed, case.causes, n_sessions=n_sessions, session_s=session_s)
+        scales = [case.size_sigma * sigma / h.size[c] for c in case.causes]
+    cols, h = generate(case.seed, case.causes, n_sessions=n_sessions, session_s=session_s, scales=scales)
+    if case.background != "white":
+        cols = add_background(cols, case.background, case.seed, sigma)
+    return cols, h
