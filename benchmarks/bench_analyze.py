@@ -49,7 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--long", action="store_true", help="3-hour 100 Hz log: time and peak memory")
     ap.add_argument("--hours", type=float, default=3.0)
     ap.add_argument("--backgrounds", action="store_true", help="false alarms on non-white nulls")
+    ap.add_argument("--hard", action="store_true", help="score on the harder hidden set")
     args = ap.parse_args(argv)
+    if args.hard:
+        return _hard(args.json)
     if args.long:
         return _long(args.hours, args.json)
     if args.backgrounds:
@@ -106,6 +109,35 @@ def _long(hours: float, out: str | None) -> int:
     fig = {"hours": hours, "rate_hz": 100, "samples": r["samples"]["total"], "seconds": round(sec, 1),
            "peak_rss_mb": round(peak_mb), "findings": [f["cause"] for f in r["findings"]]}
     print(json.dumps(fig))
+    if out:
+        Path(out).write_text(json.dumps(fig, indent=1) + "\n")
+    return 0
+
+
+def _hard(out: str | None) -> int:
+    """Score on ``HARD_SET``: a case is right when the regression causes found are exactly the hidden
+    ones (on a flicker background an extra random_walk is allowed: that wander is predictable, which
+    is what random_walk means); a null is right with no regression cause. Noise causes are free."""
+    from gyrocal.analysis.engine import analyze
+    from gyrocal.analysis.hidden import HARD_SET, generate_hard
+    from gyrocal.logformat import LogData
+
+    regression = {"temperature", "temperature_rate", "warmup", "periodic", "scale_factor", "random_walk"}
+    rows, right, alarms = [], 0, 0
+    for case in HARD_SET:
+        cols, _ = generate_hard(case)
+        found = {f["cause"] for f in analyze(LogData(cols, {}, [], "hard")).result["findings"]}
+        reg = found & regression
+        if case.background in ("flicker", "real_like"):
+            reg -= {"random_walk"} - set(case.causes)
+        ok = reg == set(case.causes)
+        right += ok
+        alarms += bool(reg - set(case.causes))
+        rows.append({"seed": case.seed, "causes": case.causes, "size_sigma": case.size_sigma,
+                     "background": case.background, "found": sorted(found), "right": ok})
+        print(json.dumps(rows[-1]), flush=True)
+    fig = {"cases": len(rows), "right": right, "with_a_false_cause": alarms, "rows": rows}
+    print(f"hard set: {right}/{len(rows)} right, {alarms} with a cause that was not hidden")
     if out:
         Path(out).write_text(json.dumps(fig, indent=1) + "\n")
     return 0
