@@ -91,3 +91,12 @@ def test_fidelity_is_per_session_with_confidence_intervals_up_to_a_tenth_of_the_
     assert s["tau_s"][-1] <= s["samples"] / 25.0 / 10
     assert all(lo <= m <= hi for lo, m, hi in zip(s["ci_low"]["x"], s["measured"]["x"], s["ci_high"]["x"],
                                                  strict=True))
+
+
+def test_temperature_and_its_rate_together_are_both_named_not_a_random_walk() -> None:
+    cols, h = generate(11, causes=["temperature", "temperature_rate"])
+    r = analyze(LogData(cols, {}, [], "pair")).result
+    found = {f["cause"]: f["axes"] for f in r["findings"]}
+    assert "random_walk" not in found
+    assert found.get("temperature") == h.axes["temperature"]
+    assert found.get("temperature_rate") == h.axes["temperature_rate"]
