@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import shutil
 import socket
 import stat
@@ -293,8 +294,176 @@ def test_an_oversized_request_is_refused_without_unbounded_buffering(server, mon
     import gyrocal.daemon.control as control
 
     srv, daemon = server
-    monkeypatch.setattr(control, "MAX_LINE_BYTES", 1000)
+    monkeypatch.setattr(control, "MAX_REQUEST_BYTES", 1000)
     (reply,) = raw_exchange(srv.path, b"x" * 5000, 1)
     assert reply["ok"] is False and "longer than 1000 bytes" in reply["error"]
     assert daemon.requests == []
     assert request(srv.path, {"cmd": "x"})["ok"] is True
+
+
+# --- slow clients, eviction, nesting, the runtime directory ------------------------------------------
+
+def _connect(path: Path) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(10)
+    s.connect(os.fspath(path))
+    return s
+
+
+def _read_line(s: socket.socket) -> dict:
+    buf = b""
+    while not buf.endswith(b"\n"):
+        chunk = s.recv(65536)
+        if not chunk:
+            break
+        buf += chunk
+    return json.loads(buf) if buf else {}
+
+
+def test_a_trickling_client_is_cut_off_at_the_whole_request_deadline(server, monkeypatch) -> None:
+    """A byte every 0.1 s keeps every recv busy, but the request as a whole misses its 0.5 s deadline
+    (the same as a byte every 20 s against the real 10 s deadline)."""
+    import gyrocal.daemon.control as control
+
+    srv, daemon = server
+    monkeypatch.setattr(control, "REQUEST_DEADLINE_S", 0.5)
+    s = _connect(srv.path)
+    cut = False
+    for ch in b'{"cmd": "status", "pad": "' + b"x" * 100:
+        try:
+            s.sendall(bytes([ch]))
+        except OSError:
+            cut = True
+            break
+        ready, _, _ = select.select([s], [], [], 0.1)
+        if ready:
+            reply = _read_line(s)
+            assert reply["ok"] is False and "not complete within 0.5 s" in reply["error"]
+            cut = True
+            break
+    s.close()
+    assert cut and daemon.requests == []
+
+
+def test_an_idle_connection_is_dropped_with_a_reason(server, monkeypatch) -> None:
+    import gyrocal.daemon.control as control
+
+    srv, _ = server
+    monkeypatch.setattr(control, "CLIENT_IDLE_S", 0.3)
+    s = _connect(srv.path)
+    reply = _read_line(s)
+    assert reply["ok"] is False and "no request within 0.3 s" in reply["error"]
+    assert s.recv(10) == b""
+    s.close()
+
+
+def test_eight_slow_clients_do_not_lock_the_operator_out(server) -> None:
+    """MAX_CLIENTS connections each holding half a request: a new connection evicts the most idle one
+    and is answered at once (deadlines are the real ones: nothing here waits for a timeout)."""
+    import gyrocal.daemon.control as control
+
+    srv, daemon = server
+    slow = []
+    for _ in range(control.MAX_CLIENTS):
+        s = _connect(srv.path)
+        s.sendall(b'{"cmd": "sta')
+        slow.append(s)
+    deadline = 50
+    while len(srv._clients) < control.MAX_CLIENTS and deadline:  # the acceptor registers them in turn
+        threading.Event().wait(0.02)
+        deadline -= 1
+    for _ in range(3):  # operators keep getting in, each evicting the most idle slow client
+        assert request(srv.path, {"cmd": "status"})["state"] == "MONITORING"
+    evicted = [s for s in slow if select.select([s], [], [], 0)[0]]
+    assert evicted, "no slow client was evicted"
+    assert "evicted" in _read_line(evicted[0])["error"]
+    assert slow[0] in evicted  # the oldest goes first
+    for s in slow:
+        s.close()
+    assert [r["cmd"] for r in daemon.requests] == ["status"] * 3 and srv.dropped >= 1
+
+
+@pytest.mark.parametrize("depth", [17, 100, 30_000])
+def test_deeply_nested_json_gets_a_clear_answer_not_a_recursion_error(server, caplog, depth: int) -> None:
+    srv, daemon = server
+    line = b'{"cmd": "push", "x": ' + b"[" * depth + b"]" * depth + b"}\n"
+    (reply,) = raw_exchange(srv.path, line, 1)
+    assert reply["ok"] is False and "nested deeper than 16 levels" in reply["error"]
+    assert daemon.requests == [] and "RecursionError" not in caplog.text and "Traceback" not in caplog.text
+    assert request(srv.path, {"cmd": "x"})["ok"] is True
+
+
+def test_brackets_inside_strings_do_not_count_as_nesting(server) -> None:
+    srv, daemon = server
+    assert request(srv.path, {"cmd": "push", "source": "[[[[[[[[[[[[[[[[[[[[{{{{{{{{{{{{{{"})["ok"] is True
+    from gyrocal.daemon.control import json_depth
+
+    assert json_depth(b'{"a": [[1], {"b": "]]]]"}]}') == 3
+
+
+def test_the_daemon_creates_its_runtime_directory_0700(short_dir: Path) -> None:
+    path = short_dir / "run" / "gyrocal" / "c.sock"
+    with ControlServer(path, FakeDaemon()):
+        for d in (short_dir / "run", short_dir / "run" / "gyrocal"):
+            assert stat.S_IMODE(os.stat(d).st_mode) == 0o700
+        assert request(path, {"cmd": "x"})["ok"] is True
+
+
+def test_a_world_writable_socket_directory_is_refused_by_daemon_and_client(short_dir: Path) -> None:
+    d = short_dir / "open"
+    d.mkdir()
+    os.chmod(d, 0o777)
+    with pytest.raises(ConfigError, match="writable by other users"):
+        ControlServer(d / "c.sock", FakeDaemon()).start()
+    with pytest.raises(ConfigError, match="writable by other users"):
+        request(d / "c.sock", {"cmd": "status"})
+    os.chmod(d, 0o770)
+    with pytest.raises(ConfigError, match="mode 0770"):
+        ControlServer(d / "c.sock", FakeDaemon()).start()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to give a directory to another user")
+def test_another_users_directory_in_a_shared_tmp_is_refused_by_daemon_and_client(short_dir: Path) -> None:
+    """The squat: another user pre-creates /tmp/gyrocal-<uid> (0700, theirs) and listens in it."""
+    os.chmod(short_dir, 0o1777)  # stands in for /tmp
+    squat = short_dir / "gyrocal-1000"
+    (squat / "gyrocal").mkdir(parents=True)
+    with ControlServer(squat / "gyrocal" / "c.sock", FakeDaemon()) as fake:  # the squatter's daemon
+        for d in (squat / "gyrocal", squat):
+            os.chown(d, 12345, 12345)
+        os.chown(fake.path, 12345, 12345)
+        with pytest.raises(ConfigError, match="belongs to another user"):
+            request(fake.path, {"cmd": "status"})
+        with pytest.raises(ConfigError, match="belongs to another user"):
+            ControlServer(squat / "gyrocal" / "d.sock", FakeDaemon()).start()
+        os.chown(squat / "gyrocal", 0, 0)  # only the parent is foreign: still refused
+        with pytest.raises(ConfigError, match=f"its parent {squat} belongs to another user"):
+            request(fake.path, {"cmd": "status"})
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to give a directory to another user")
+def test_a_system_runtime_dir_owned_by_the_daemon_user_is_accepted_by_the_client(short_dir: Path) -> None:
+    """/run/gyrocal belongs to user gyrocal (systemd RuntimeDirectory= with User=) and sits in a
+    directory only root can write: the operator's client talks to it."""
+    run = short_dir / "run"
+    (run / "gyrocal").mkdir(parents=True)
+    os.chmod(run, 0o755)
+    with ControlServer(run / "gyrocal" / "c.sock", FakeDaemon()) as srv:
+        os.chown(run / "gyrocal", 12345, 12345)
+        os.chmod(run / "gyrocal", 0o750)
+        assert request(srv.path, {"cmd": "x"})["ok"] is True
+
+
+def test_the_per_user_fallback_is_private(short_dir: Path, monkeypatch) -> None:
+    from gyrocal.daemon.config import load_config
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(short_dir))
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    monkeypatch.delenv("GYROCAL_SOCKET", raising=False)
+    import gyrocal.daemon.config as config
+
+    monkeypatch.setattr(config, "_writable_dir", lambda p: False)  # no /run/gyrocal
+    sock = load_config(None).control_socket
+    assert sock == short_dir / "gyrocal" / "control.sock"
+    with ControlServer(sock, FakeDaemon()):
+        assert stat.S_IMODE(os.stat(sock.parent).st_mode) == 0o700

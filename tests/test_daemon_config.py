@@ -61,5 +61,142 @@ def test_run_with_an_unknown_port_says_so_in_one_line(tmp_path: Path, capsys) ->
     path.write_text(f"link: {{url: /dev/does-not-exist-42}}\nstate_dir: {tmp_path}/s\n"
                     f"control_socket: {tmp_path}/c.sock\n")
     assert main(["run", "--config", str(path)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "/dev/does-not-exist-42" in err[-1]
+    err = capsys.readouterr().err.strip().splitlines()  # the daemon's log lines are on stderr too
+    fatal = [ln for ln in err if "error:" in ln]
+    assert len(fatal) == 1 and fatal[0].startswith("gyrocal: error:") and "/dev/does-not-exist-42" in fatal[0]
+    assert err[-1] == fatal[0]
+
+
+# --- ranges: every numeric field, at start and at SIGHUP reload -----------------------------------
+
+from gyrocal.daemon.config import _RANGES, _SCHEMA  # noqa: E402
+
+_BAD_VALUES: dict[str, list[object]] = {
+    "link.baudrate": [0, -9600, 10**9],
+    "link.reconnect_max_s": [0, -1, 1e9, float("nan")],
+    "virtual_unit.seed": [-1],
+    "virtual_unit.rate_hz": [0, 5000],
+    "virtual_unit.dwell_s": [0, -1.2],
+    "virtual_unit.move_s": [0, -0.4],
+    "estimator.forgetting": [0.5, 1.01, float("nan")],
+    "estimator.step": [0, 2, -0.1],
+    "validation.holdout_every": [1, 0],
+    "validation.block_s": [0, -0.5, 0.001, float("inf")],
+    "validation.min_improvement": [1, -0.1],
+    "validation.min_holdout_blocks": [0],
+    "push.ack_timeout_s": [0, -1, float("nan")],
+    "push.retries": [0, -3],
+    "monitor.alarm_ratio": [1, 0.5],
+    "monitor.window_s": [0, -10],
+    "monitor.alarm_floor_dps": [-0.001],
+    "still.window_s": [0, -0.2],
+    "still.gyro_std_dps": [0, -0.05],
+    "still.accel_tol_g": [0, 2],
+}
+
+
+def test_every_numeric_field_has_a_range_and_a_bad_value_here() -> None:
+    numeric = {f"{sec}.{fld}" for sec, fields in _SCHEMA.items() for fld, spec in fields.items()
+               if int in spec[0] or float in spec[0]}
+    assert numeric == set(_RANGES), "a numeric config field without a range (add it to _RANGES)"
+    assert numeric == set(_BAD_VALUES), "a numeric config field without a bad value in this test"
+
+
+def _write(tmp_path: Path, dotted: str, value: object) -> Path:
+    import yaml
+
+    section, fld = dotted.split(".")
+    doc = {"link": {"url": "/dev/x"}, section: {fld: value}}
+    if section == "link":
+        doc["link"]["url"] = "/dev/x"
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.mark.parametrize(("dotted", "value"), [(k, v) for k, vs in _BAD_VALUES.items() for v in vs])
+def test_every_field_with_a_bad_value_is_refused_with_its_name(tmp_path: Path, dotted: str,
+                                                               value: object) -> None:
+    path = _write(tmp_path, dotted, value)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    text = str(err.value)
+    assert str(path) in text and f"field '{dotted}'" in text and "outside" in text and "\n" not in text
+
+
+@pytest.mark.parametrize(("dotted", "value"), [("validation.block_s", 0.02), ("push.ack_timeout_s", 0.05),
+                                               ("estimator.forgetting", 1), ("monitor.alarm_floor_dps", 0)])
+def test_values_inside_the_ranges_load(tmp_path: Path, dotted: str, value: object) -> None:
+    section, fld = dotted.split(".")
+    assert getattr(load_config(_write(tmp_path, dotted, value)), section)[fld] == value
+
+
+def test_cross_field_and_convergence_ranges(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\nvalidation: {block_s: 2}\nmonitor: {window_s: 1}\n")
+    with pytest.raises(ConfigError, match=r"field 'monitor.window_s' is 1; write a window >= validation"):
+        load_config(path)
+    path.write_text("link: {url: /dev/x}\nestimator: {convergence: {window: 0}}\n")
+    with pytest.raises(ConfigError, match=r"c.yaml: field 'estimator': convergence.window: 0 must be > 0"):
+        load_config(path)
+
+
+def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path: Path, caplog) -> None:
+    """The engine's reload path (load_config on SIGHUP): a refused reload keeps the config, one line."""
+    from gyrocal.daemon.engine import Engine
+
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\nvalidation: {block_s: 0.5}\n")
+    eng = Engine.__new__(Engine)  # only the reload path: no link, no store
+    eng.cfg = load_config(path)
+
+    class _Notifier:
+        def reloading(self) -> None: ...
+        def ready(self) -> None: ...
+
+    eng.notifier = _Notifier()
+    path.write_text("link: {url: /dev/x}\nvalidation: {block_s: 0}\npush: {ack_timeout_s: -1}\n")
+    with caplog.at_level("ERROR"):
+        eng._reload()
+    assert eng.cfg.validation["block_s"] == 0.5 and eng.cfg.push["ack_timeout_s"] == 1.0
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and "validation.block_s" in errors[0] and str(path) in errors[0]
+
+
+# --- CAN: python-can's own configuration fills what link.can leaves out ---------------------------------
+
+@pytest.fixture
+def no_can_env(tmp_path: Path, monkeypatch) -> Path:
+    for var in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # ~/.canrc is read from here
+    return tmp_path
+
+
+def test_can_link_takes_interface_and_channel_from_the_environment(no_can_env: Path, monkeypatch) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "gyro")
+    path = no_can_env / "c.yaml"
+    path.write_text("link: {kind: can}\n")
+    assert load_config(path).link["can"] == {"interface": "virtual", "channel": "gyro"}
+    path.write_text("link: {kind: can, can: {channel: other}}\n")  # the config file wins
+    assert load_config(path).link["can"] == {"interface": "virtual", "channel": "other"}
+
+
+def test_can_link_takes_its_defaults_from_canrc(no_can_env: Path) -> None:
+    (no_can_env / ".canrc").write_text("[default]\ninterface = socketcan\nchannel = vcan0\n"
+                                       "bitrate = 500000\n")
+    path = no_can_env / "c.yaml"
+    path.write_text("link: {kind: can}\n")
+    assert load_config(path).link["can"] == {"interface": "socketcan", "channel": "vcan0", "bitrate": 500000}
+
+
+def test_can_link_without_any_interface_names_the_field_and_python_cans_config(no_can_env: Path,
+                                                                                  monkeypatch) -> None:
+    path = no_can_env / "c.yaml"
+    path.write_text("link: {kind: can}\n")
+    with pytest.raises(ConfigError, match=r"field 'link.can' .*CAN_INTERFACE"):
+        load_config(path)
+    monkeypatch.setenv("CAN_INTERFACE", "no_such_bus")
+    with pytest.raises(ConfigError, match=r"c.yaml: field 'link.can'.*unknown interface"):
+        load_config(path)

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-import allantools
 import numpy as np
 from scipy import stats
 
 from gyrocal.analysis.baseline import Problem
 from gyrocal.analysis.candidates import F_MIN_HZ, gridded, spectrum
 from gyrocal.analysis.segments import AXES
+from gyrocal.model.allan import oadev
 
 
 def autocorrelation(r: np.ndarray, max_lag: int) -> np.ndarray:
@@ -99,9 +99,8 @@ def covariate_table(prob: Problem, r: np.ndarray, extra: list[str]) -> dict:
 
 def adev(x: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Overlapping Allan deviation at octave taus [s] of a rate series x [deg/s]."""
-    taus, dev, _, _ = allantools.oadev(np.asarray(x, float), rate=rate_hz, data_type="freq",
-                                       taus="octave")
-    return np.asarray(taus), np.asarray(dev)
+    taus, dev, _ = oadev(np.asarray(x, float), rate_hz)
+    return taus, dev
 
 
 def fidelity(measured: np.ndarray, simulated: np.ndarray) -> float:

@@ -12,7 +12,12 @@ Requests sent (the daemon's handler answers them):
     {"cmd": "push", "terms": [P names], "coefficients": [[P], [P], [P]], "source": "FILE"}
         coefficients are rows x, y, z in deg/s per unit of each term (as in the store).
 
-The status answer is rendered from these keys when present (others are listed at the end, cut short):
+`gyrocal status --watch` polls the daemon and prints one JSON line per change of its answer (like
+gpsd's ``gpspipe -w``) until interrupted; if the daemon goes away it prints one ``{"ok": false,
+"error": ...}`` line and keeps watching for its return.
+
+The status answer is rendered from these keys when present (others are listed at the end, in full:
+long values wrap under their column, nothing is cut):
     state, reason, message, unit {serial, boot_count, fw}, applied {version}, samples, still_samples,
     trained_samples, converged, converged_reason, rms_dps | monitor_rms_dps {x,y,z}, alarm, terms,
     coefficients_dps and uncertainty_dps ({x,y,z} or 3 rows), link {...}, ring {...}, validation {...},
@@ -25,14 +30,17 @@ import argparse
 import json
 import math
 import os
+import shutil
 import sys
+import textwrap
+import time
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from gyrocal.daemon.control import default_socket_path, request
-from gyrocal.errors import ConfigError
+from gyrocal.errors import ConfigError, GyrocalError
 
 AXES = ("x", "y", "z")
 
@@ -57,9 +65,53 @@ def _answer(reply: dict, ok_text: str | None = None) -> int:
 def configure_status(parser: argparse.ArgumentParser) -> None:
     _add_socket(parser)
     parser.add_argument("--json", action="store_true", help="print the daemon's answer as JSON")
+    parser.add_argument("--watch", action="store_true",
+                        help="print one JSON line per change of the status until interrupted (as gpspipe -w)")
+    parser.add_argument("--interval", type=_positive, default=1.0, metavar="S",
+                        help="--watch: seconds between polls (default 1)")
+    parser.add_argument("--count", type=int, default=0, metavar="N",
+                        help="--watch: stop after N lines (default 0: until interrupted)")
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0.05 <= v <= 3600:
+        raise argparse.ArgumentTypeError("write an interval from 0.05 to 3600 s")
+    return v
+
+
+def watch_status(socket_path: Path, interval_s: float, count: int = 0) -> int:
+    """JSON lines, one per change of the daemon's answer; a lost daemon is one error line, then
+    watching resumes when it comes back. Returns 0 (after ``count`` lines, or on Ctrl-C)."""
+    last: str | None = None
+    printed = 0
+    try:
+        while True:
+            try:
+                reply = request(socket_path, {"cmd": "status"})
+            except ConfigError:
+                raise  # an unsafe socket directory: never poll it again
+            except GyrocalError as err:
+                reply = {"ok": False, "error": str(err)}
+            line = json.dumps(reply, sort_keys=True, separators=(",", ":"))
+            if line != last:
+                last = line
+                sys.stdout.write(line + "\n")
+                sys.stdout.flush()
+                printed += 1
+                if count and printed >= count:
+                    return 0
+            time.sleep(interval_s)
+    except KeyboardInterrupt:
+        return 0
 
 
 def main_status(args: argparse.Namespace) -> int:
+    if args.watch:
+        return watch_status(args.socket, args.interval, args.count)
     reply = request(args.socket, {"cmd": "status"})
     if args.json:
         print(json.dumps(reply, indent=2, sort_keys=True))
@@ -70,13 +122,14 @@ def main_status(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fmt(v: Any) -> str:
+def _fmt(v: Any, nested: bool = False) -> str:
     if isinstance(v, float):
         return f"{v:.6g}"
     if isinstance(v, dict):
-        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
+        text = ", ".join(f"{k}={_fmt(x, True)}" for k, x in v.items())
+        return f"({text})" if nested else text
     if isinstance(v, list):
-        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+        return "[" + ", ".join(_fmt(x, True) for x in v) + "]"
     return str(v)
 
 
@@ -92,64 +145,70 @@ _SHOWN = {"ok", "state", "reason", "message", "unit", "serial", "applied", "vers
           "still_samples", "trained_samples", "converged", "converged_reason", "rms_dps", "rms",
           "monitor_rms_dps", "alarm", "terms", "coefficients_dps", "coefficients", "uncertainty_dps",
           "link", "ring", "last_push", "validation", "units"}
-_MAX_EXTRA = 100  # an unknown key's value is cut to this many characters in the human view
 
 
-def format_status(reply: dict) -> str:
-    """A human-readable status: one block per unit, tolerant of missing or unknown keys."""
+def format_status(reply: dict, width: int | None = None) -> str:
+    """A human-readable status: one block per unit, tolerant of missing or unknown keys.
+
+    Keys sit in one column as wide as the longest key (no key is glued to its value); a long value
+    wraps onto indented lines within ``width`` columns (the terminal's), never cut short."""
+    width = width or shutil.get_terminal_size((100, 24)).columns
     units = reply.get("units")
     if isinstance(units, list) and units:
-        blocks = [_format_unit(u) for u in units if isinstance(u, dict)]
-        extra = {k: v for k, v in reply.items() if k not in _SHOWN}
+        blocks = [_format_unit(u, width) for u in units if isinstance(u, dict)]
+        extra = [(k, _fmt(v)) for k, v in reply.items() if k not in _SHOWN]
         if extra:
-            blocks.append("\n".join(_extra_line(k, v) for k, v in extra.items()))
+            blocks.append("\n".join(_render(extra, width)))
         return "\n\n".join(blocks)
-    return _format_unit(reply)
+    return _format_unit(reply, width)
 
 
-def _extra_line(key: str, value: Any) -> str:
-    text = _fmt(value)
-    return f"{key:<13}{text if len(text) <= _MAX_EXTRA else text[:_MAX_EXTRA - 3] + '...'}"
+def _render(pairs: list[tuple[str, str]], width: int) -> list[str]:
+    """Aligned ``key  value`` lines; values wrap at width under the value column."""
+    col = max(len(k) for k, _ in pairs) + 2
+    out = []
+    for key, value in pairs:
+        wrapped = textwrap.wrap(value, max(20, width - col), break_on_hyphens=False) or [""]
+        out.append(f"{key:<{col}}{wrapped[0]}")
+        out += [" " * col + more for more in wrapped[1:]]
+    return out
 
 
-def _format_unit(s: dict) -> str:
-    lines = [f"{'state':<13}{s.get('state', '?')}" + (f"  ({s['reason']})" if s.get("reason") else "")]
+def _format_unit(s: dict, width: int = 100) -> str:
+    pairs: list[tuple[str, str]] = [("state", f"{s.get('state', '?')}"
+                                     + (f"  ({s['reason']})" if s.get("reason") else ""))]
     if s.get("message"):
-        lines.append(f"{'message':<13}{s['message']}")
+        pairs.append(("message", str(s["message"])))
     unit = s.get("unit") if isinstance(s.get("unit"), dict) else {}
     serial = unit.get("serial", s.get("serial"))
     if serial is not None:
-        lines.append(f"{'unit':<13}serial {serial}" + "".join(f", {k} {v}" for k, v in unit.items()
-                                                            if k != "serial"))
+        pairs.append(("unit", f"serial {serial}" + "".join(f", {k} {v}" for k, v in unit.items()
+                                                           if k != "serial")))
     applied = s.get("applied")
     version = applied.get("version") if isinstance(applied, dict) else s.get("version")
     if "applied" in s or "version" in s:
-        lines.append(f"{'applied':<13}" + (f"v{version}" if version is not None else "none"))
+        pairs.append(("applied", f"v{version}" if version is not None else "none"))
     if s.get("samples") is not None:
         more = [f"{k.replace('_samples', '')} {s[k]}" for k in ("still_samples", "trained_samples")
                 if s.get(k) is not None]
-        lines.append(f"{'samples':<13}{s['samples']}" + (f" ({', '.join(more)})" if more else ""))
+        pairs.append(("samples", f"{s['samples']}" + (f" ({', '.join(more)})" if more else "")))
     if "converged" in s:
-        lines.append(f"{'converged':<13}{'yes' if s['converged'] else 'no'}"
-                     + (f" ({s['converged_reason']})" if s.get("converged_reason") else ""))
+        pairs.append(("converged", ("yes" if s["converged"] else "no")
+                      + (f" ({s['converged_reason']})" if s.get("converged_reason") else "")))
     for key in ("rms_dps", "rms", "monitor_rms_dps"):
         rms = s.get(key)
         if isinstance(rms, dict):
-            lines.append(f"{'rms [deg/s]':<13}" + "  ".join(f"{a}={_fmt(rms[a])}" for a in AXES if a in rms))
+            pairs.append(("rms [deg/s]", "  ".join(f"{a}={_fmt(rms[a])}" for a in AXES if a in rms)))
             break
     if s.get("alarm"):
-        lines.append(f"{'ALARM':<13}{_fmt(s['alarm'])}")
-    lines += _coefficient_table(s)
-    for key, label in (("link", "link"), ("ring", "ring"), ("validation", "validation")):
+        pairs.append(("ALARM", _fmt(s["alarm"])))
+    for key in ("link", "ring", "validation"):
         if isinstance(s.get(key), dict) and s[key]:
-            lines.append(_extra_line(label, s[key]))
-    push = s.get("last_push")
+            pairs.append((key, _fmt(s[key])))
     if "last_push" in s:
-        lines.append(_extra_line("last push", push) if push else f"{'last push':<13}none yet")
-    for k, v in s.items():
-        if k not in _SHOWN:
-            lines.append(_extra_line(k, v))
-    return "\n".join(lines)
+        pairs.append(("last push", _fmt(s["last_push"]) if s["last_push"] else "none yet"))
+    pairs += [(k, _fmt(v)) for k, v in s.items() if k not in _SHOWN]
+    return "\n".join(_render(pairs, width) + _coefficient_table(s))
 
 
 def _coefficient_table(s: dict) -> list[str]:

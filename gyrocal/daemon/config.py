@@ -7,6 +7,7 @@ wrong and what to write instead, in one line of the journal.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from importlib import resources
@@ -16,6 +17,7 @@ from typing import Any
 import yaml
 
 from gyrocal.errors import ConfigError
+from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 
 DEFAULT_CONFIG = "default.yaml"
@@ -26,7 +28,8 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "kind": ((str,), "serial", "write `serial` or `can`"),
         "url": ((str,), "auto", "write a device such as /dev/gyrocal-imu, a pyserial URL, or `auto`"),
         "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
-        "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}"),
+        "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}; "
+                "interface/channel left out come from python-can's config (CAN_INTERFACE, ~/.canrc)"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
     },
     "virtual_unit": {
@@ -66,6 +69,68 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "accel_tol_g": ((int, float), 0.05, "write the tolerance [g] on |a| = 1 g when still"),
     },
 }
+
+
+@dataclass(frozen=True)
+class Range:
+    """The allowed interval of a numeric field; ``lo_open``/``hi_open`` exclude the bound itself.
+
+    Why every number has one: a value of the right type can still stop the daemon (block_s: 0 is a
+    division by zero at the next session) or make it lie (ack_timeout_s: -1 times out every push), and
+    the same check runs at start and at SIGHUP reload, so a bad edit is refused before it is used.
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    unit: str = ""
+
+    def contains(self, v: float) -> bool:
+        if not math.isfinite(v):
+            return False
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        return not (self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi))
+
+    def text(self) -> str:
+        left = "(" if self.lo_open or self.lo is None else "["
+        right = ")" if self.hi_open or self.hi is None else "]"
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        return f"{left}{lo}, {hi}{right}" + (f" {self.unit}" if self.unit else "")
+
+
+def _gt(lo: float, hi: float, unit: str = "") -> Range:
+    """(lo, hi]: a strictly positive quantity with a sane ceiling."""
+    return Range(lo, hi, lo_open=True, unit=unit)
+
+
+# dotted field -> allowed range. EVERY int/float field of _SCHEMA must have a line here (a test checks);
+# a new field adds its line next to its schema entry's section.
+_RANGES: dict[str, Range] = {
+    "link.baudrate": Range(300, 20_000_000, unit="baud"),
+    "link.reconnect_max_s": _gt(0, 3600, "s"),
+    "virtual_unit.seed": Range(0, 2**32 - 1),
+    "virtual_unit.rate_hz": Range(1, 2000, unit="Hz"),
+    "virtual_unit.dwell_s": _gt(0, 3600, "s"),
+    "virtual_unit.move_s": _gt(0, 600, "s"),
+    "estimator.forgetting": Range(0.9, 1.0, lo_open=True),
+    "estimator.step": Range(0, 2, lo_open=True, hi_open=True),
+    "validation.holdout_every": Range(2, 1000),
+    "validation.block_s": Range(0.01, 60, unit="s"),
+    "validation.min_improvement": Range(0, 1, hi_open=True),
+    "validation.min_holdout_blocks": Range(1, 100_000),
+    "push.ack_timeout_s": _gt(0, 60, "s"),
+    "push.retries": Range(1, 100),
+    "monitor.alarm_ratio": _gt(1, 1000),
+    "monitor.window_s": _gt(0, 86_400, "s"),
+    "monitor.alarm_floor_dps": Range(0, 10, unit="deg/s"),
+    "still.window_s": _gt(0, 60, "s"),
+    "still.gyro_std_dps": _gt(0, 100, "deg/s"),
+    "still.accel_tol_g": _gt(0, 1, "g"),
+}
+
 _TOP = {
     "state_dir": ((str,), "auto", "write a directory path, or `auto`"),
     "control_socket": ((str,), "auto", "write a socket path, or `auto`"),
@@ -128,6 +193,9 @@ def _check_field(name: str, dotted: str, value: Any, spec: tuple[tuple[type, ...
         raise ConfigError(f"{name}: field '{dotted}' is {value!r}; {fix}")
     if not isinstance(value, types):
         raise ConfigError(f"{name}: field '{dotted}' is {value!r}; {fix}")
+    rng = _RANGES.get(dotted)
+    if rng is not None and isinstance(value, int | float) and not rng.contains(value):
+        raise ConfigError(f"{name}: field '{dotted}' is {value!r}, outside {rng.text()}; {fix}")
     return value
 
 
@@ -175,25 +243,23 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     link, est, val = s["link"], s["estimator"], s["validation"]
     if link["kind"] not in ("serial", "can"):
         _fail(name, "link.kind", link["kind"], "write `serial` or `can`")
-    if link["kind"] == "can" and not link["can"] and not s["virtual_unit"]["enabled"]:
-        _fail(name, "link.can", link["can"], "give python-can Bus arguments, e.g. {interface: socketcan, "
-              "channel: can0}")
+    if link["kind"] == "can" and not s["virtual_unit"]["enabled"]:
+        from gyrocal.drivers.can_defaults import with_python_can_defaults
+
+        link["can"] = with_python_can_defaults(link["can"], f"{name}: field 'link.can'")
+        if not link["can"].get("interface"):
+            _fail(name, "link.can", link["can"], "give python-can Bus arguments, e.g. {interface: socketcan, "
+                  "channel: can0}, or configure python-can (CAN_INTERFACE/CAN_CHANNEL, /etc/can.conf, "
+                  "~/.canrc)")
     if link["url"] == "auto" and link["kind"] == "serial" and not s["virtual_unit"]["enabled"]:
         _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
     if est["method"] not in ("rls", "nlms", "lms"):
         _fail(name, "estimator.method", est["method"], "write rls, nlms or lms")
-    if not 0.9 < est["forgetting"] <= 1.0:
-        _fail(name, "estimator.forgetting", est["forgetting"], "write a factor in (0.9, 1]")
-    if val["holdout_every"] < 2:
-        _fail(name, "validation.holdout_every", val["holdout_every"], "write an integer >= 2")
-    if not 0 <= val["min_improvement"] < 1:
-        _fail(name, "validation.min_improvement", val["min_improvement"], "write a fraction in [0, 1)")
-    if s["push"]["retries"] < 1:
-        _fail(name, "push.retries", s["push"]["retries"], "write an integer >= 1")
-    if not 1 <= s["virtual_unit"]["rate_hz"] <= 2000:
-        _fail(name, "virtual_unit.rate_hz", s["virtual_unit"]["rate_hz"], "write a rate in Hz, 1 to 2000")
-    if s["monitor"]["alarm_ratio"] <= 1:
-        _fail(name, "monitor.alarm_ratio", s["monitor"]["alarm_ratio"], "write a ratio > 1")
+    # ranges of single fields are checked in _check_field (_RANGES); here only what ties fields together
+    if s["monitor"]["window_s"] < val["block_s"]:
+        _fail(name, "monitor.window_s", s["monitor"]["window_s"],
+              f"write a window >= validation.block_s ({val['block_s']:g} s): it holds whole still blocks")
+    ConvergenceConfig.from_dict(est["convergence"], f"{name}: field 'estimator'")  # raises with the field
 
 
 def _resolve_terms(value: str | list[Any], name: str) -> list[str]:
@@ -253,5 +319,6 @@ def _socket_path(value: str) -> Path:
     system = Path("/run/gyrocal")
     if _writable_dir(system):
         return system / "control.sock"
-    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/gyrocal-{os.getuid()}"
-    return Path(base) / "gyrocal" / "control.sock"
+    from gyrocal.daemon.control import user_runtime_dir  # one definition for daemon and client
+
+    return user_runtime_dir() / "control.sock"  # created 0700 and owner-checked by ControlServer.start

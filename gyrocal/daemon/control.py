@@ -12,6 +12,19 @@ Threads: one acceptor thread (it blocks in select() on the listening socket and 
 socketpair, so stop() is immediate and nothing polls), plus one short-lived thread per connection (at
 most MAX_CLIENTS). The daemon's handler is called under a lock, one request at a time, so it never
 runs concurrently with itself; it must answer quickly (a snapshot of the daemon's state, no I/O wait).
+
+Operators can always get in (the daemon runs for years next to whatever else is on the computer):
+- a whole request must arrive within REQUEST_DEADLINE_S of its first byte, and a connection may sit
+  idle between requests for at most CLIENT_IDLE_S: a client trickling one byte every 20 s is cut off
+  at the deadline, however often it sends (the deadline is per request, not per recv);
+- when MAX_CLIENTS connections are open, a new one evicts the connection that has gone longest
+  without a complete request (never one whose request is being answered), so eight slow clients
+  cannot lock everyone out;
+- a request is at most MAX_REQUEST_BYTES long and nested at most MAX_JSON_DEPTH deep; anything else
+  gets a one-line error answer (never a RecursionError in the log).
+
+The socket's directory is checked before bind and before connect (check_socket_dir): a directory
+another user could have made or can write (the classic /tmp/gyrocal-<uid> squat) is refused.
 """
 
 from __future__ import annotations
@@ -20,11 +33,14 @@ import contextlib
 import json
 import logging
 import os
+import re
 import select
 import socket
 import stat
 import threading
+import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,9 +49,12 @@ from gyrocal.errors import ConfigError, GyrocalError
 log = logging.getLogger(__name__)
 
 DEFAULT_SOCKET = Path("/run/gyrocal/control.sock")
-MAX_LINE_BYTES = 1 << 20  # a coefficient set is a few kB; anything this long is not a request
+MAX_LINE_BYTES = 1 << 20  # the longest answer a client accepts (a status with many units)
+MAX_REQUEST_BYTES = 64 << 10  # a push of 3 x 64 coefficients is ~5 kB; anything this long is not a request
+MAX_JSON_DEPTH = 16  # a push request is 3 deep; json.loads recurses, so depth is bounded before parsing
 MAX_CLIENTS = 8
-CLIENT_IDLE_S = 30.0  # a client that connects and says nothing is dropped after this
+CLIENT_IDLE_S = 30.0  # a connection with no request under way is dropped after this [s]
+REQUEST_DEADLINE_S = 10.0  # a whole request line must arrive within this of its first byte [s]
 _SUN_PATH_MAX = 107  # sockaddr_un.sun_path is 108 bytes including the terminating NUL
 
 Handler = Callable[[dict], dict]
@@ -54,13 +73,107 @@ def default_socket_path() -> Path:
     if runtime:
         candidates.append(Path(runtime.split(":")[0]) / "control.sock")
     candidates.append(DEFAULT_SOCKET)
-    user_base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/gyrocal-{os.getuid()}"
-    candidates.append(Path(user_base) / "gyrocal" / "control.sock")
+    candidates.append(user_runtime_dir() / "control.sock")
     for path in candidates:
         with contextlib.suppress(OSError):
             if stat.S_ISSOCK(os.stat(path).st_mode):
                 return path
     return candidates[0]
+
+
+def user_runtime_dir() -> Path:
+    """The per-user fallback directory of a daemon started by hand: $XDG_RUNTIME_DIR/gyrocal, else
+    /tmp/gyrocal-<uid>/gyrocal. Both are created 0700 and must be owned by the user (check_socket_dir)."""
+    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/gyrocal-{os.getuid()}"
+    return Path(base) / "gyrocal"
+
+
+def _describe(st: os.stat_result) -> str:
+    return f"owner uid {st.st_uid}, mode {stat.S_IMODE(st.st_mode):04o}"
+
+
+def _writable_by_others(st: os.stat_result) -> bool:
+    return bool(st.st_mode & (stat.S_IWGRP | stat.S_IWOTH))
+
+
+def check_socket_dir(directory: Path | str, server: bool) -> None:
+    """Refuse a socket directory that another user made or can write. Raises ConfigError.
+
+    Why: whoever controls the directory can put their own socket where the daemon's should be and
+    answer the operator's ``status`` and ``push`` (or receive them). The rules, on the real path:
+    - every ancestor is owned by root or by us, and if group/other can write it, it has the sticky bit
+      (as /tmp does: others cannot rename or delete what is ours in it);
+    - the directory itself is not group/other-writable, and
+      - server side: it is owned by the daemon's uid (systemd's RuntimeDirectory= with User= does this);
+      - client side: it is owned by us or root, or by another user (the daemon's, e.g. /run/gyrocal
+        owned by user gyrocal) only when its parent is root's and writable by no one else, so that only
+        root (systemd) can have put it there. A directory made by another user in /tmp is refused.
+    """
+    directory = Path(directory)
+    uid = os.geteuid()
+    fix = ("fix: remove it and let the daemon create it (mode 0700), or set control_socket / --socket "
+           "to a directory you own")
+    real = Path(os.path.realpath(directory))
+    try:
+        st = os.stat(real)
+    except OSError as err:
+        raise ConfigError(f"control socket directory {directory}: {err.strerror or err}") from err
+    if not stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"control socket directory {directory} is not a directory; {fix}")
+    for anc in list(real.parents)[::-1]:
+        ast = os.stat(anc)
+        if ast.st_uid not in (0, uid):
+            raise ConfigError(f"control socket directory {directory}: its parent {anc} belongs to another "
+                              f"user ({_describe(ast)}); {fix}")
+        if _writable_by_others(ast) and not ast.st_mode & stat.S_ISVTX:
+            raise ConfigError(f"control socket directory {directory}: its parent {anc} is writable by other "
+                              f"users ({_describe(ast)}); {fix}")
+    if _writable_by_others(st):
+        raise ConfigError(f"control socket directory {directory} is writable by other users "
+                          f"({_describe(st)}); {fix}")
+    if st.st_uid == uid:
+        return
+    if server:
+        raise ConfigError(f"control socket directory {directory} belongs to another user ({_describe(st)}, "
+                          f"the daemon runs as uid {uid}); {fix}")
+    if st.st_uid == 0:
+        return
+    pst = os.stat(real.parent)
+    if not (pst.st_uid == 0 and not _writable_by_others(pst)):
+        raise ConfigError(f"control socket directory {directory} belongs to another user ({_describe(st)}) "
+                          f"and sits in {real.parent}, where others can create directories; refusing to "
+                          f"talk to it; {fix}")
+
+
+def prepare_socket_dir(directory: Path) -> None:
+    """Create the socket's directory (0700, parents too, as the per-user fallback needs), then check it."""
+    missing = [d for d in [directory, *directory.parents] if not d.exists()][::-1]
+    for d in missing:
+        try:
+            d.mkdir(mode=0o700)
+        except FileExistsError:
+            pass  # a race with another creator: check_socket_dir judges what is there
+        except OSError as err:
+            raise ConfigError(f"control socket: cannot create {d}: {err.strerror or err}; fix: make "
+                              f"{d.parent} writable by the daemon (systemd: RuntimeDirectory=gyrocal) or "
+                              "choose another control_socket path") from err
+    check_socket_dir(directory, server=True)
+
+
+_STRINGS = re.compile(rb'"(?:[^"\\]|\\.)*"')
+_BRACKETS = re.compile(rb"[\[\]{}]")
+
+
+def json_depth(line: bytes) -> int:
+    """The deepest nesting of [ and { in a JSON text (strings skipped), without recursion."""
+    depth = deepest = 0
+    for m in _BRACKETS.finditer(_STRINGS.sub(b'""', line)):
+        if m.group() in (b"[", b"{"):
+            depth += 1
+            deepest = max(deepest, depth)
+        else:
+            depth -= 1
+    return deepest
 
 
 def _json_default(obj: Any) -> Any:
@@ -85,6 +198,16 @@ def _check_path_length(path: Path) -> None:
                           f"{_SUN_PATH_MAX}; fix: choose a shorter path (e.g. /run/gyrocal/control.sock)")
 
 
+@dataclass(eq=False)
+class _Client:
+    """One connection: when it last completed a request (or connected), and whether one is being answered."""
+
+    conn: socket.socket
+    since: float = field(default_factory=time.monotonic)
+    busy: bool = False
+    evicted: bool = False
+
+
 class ControlServer:
     """Serve ``handler`` on a Unix stream socket at ``path``. start() and stop() are idempotent."""
 
@@ -97,13 +220,16 @@ class ControlServer:
         self._acceptor: threading.Thread | None = None
         self._wake_r: socket.socket
         self._wake_w: socket.socket
-        self._clients: set[socket.socket] = set()
+        self._clients: dict[socket.socket, _Client] = {}
         self._client_threads: set[threading.Thread] = set()
         self._state_lock = threading.Lock()
         self._handler_lock = threading.Lock()
         self._stopping = threading.Event()
         self.requests = 0
         self.errors = 0
+        self.dropped = 0  # connections cut for a missed deadline, an idle spell or eviction
+        self._noted_at = -1e9
+        self._noted_count = 0
 
     def __enter__(self) -> ControlServer:
         self.start()
@@ -122,10 +248,10 @@ class ControlServer:
             if self._sock is not None:
                 return
             _check_path_length(self.path)
+            prepare_socket_dir(self.path.parent)
             self._remove_stale()
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
                 sock.bind(os.fspath(self.path))
             except OSError as err:
                 sock.close()
@@ -227,55 +353,134 @@ class ControlServer:
             if self._stopping.is_set():
                 conn.close()
                 break
+            client = _Client(conn)
             with self._state_lock:
-                busy = len(self._clients) >= MAX_CLIENTS
-                if not busy:
-                    self._clients.add(conn)
-            if busy:
+                victim = self._evict_for_new() if len(self._clients) >= MAX_CLIENTS else None
+                full = len(self._clients) >= MAX_CLIENTS
+                if not full:
+                    self._clients[conn] = client
+            if victim is not None:
+                self._note(f"{MAX_CLIENTS} connections open; evicted the one idle for "
+                           f"{time.monotonic() - victim.since:.0f} s")
+                with contextlib.suppress(OSError):
+                    victim.conn.sendall(encode_line({"ok": False, "error": "connection evicted: too many "
+                                                     "control connections, and this one was the most idle"}))
+                with contextlib.suppress(OSError):
+                    victim.conn.shutdown(socket.SHUT_RDWR)  # its thread wakes from recv and exits
+            if full:  # every connection is being answered right now (the handler is slow): say so
                 with contextlib.suppress(OSError):
                     conn.sendall(encode_line({"ok": False, "error": "too many control connections; retry"}))
                 conn.close()
                 continue
-            t = threading.Thread(target=self._serve_client, args=(conn,), name="gyrocal-control-client",
+            t = threading.Thread(target=self._serve_client, args=(client,), name="gyrocal-control-client",
                                  daemon=True)
             with self._state_lock:
                 self._client_threads.add(t)
             t.start()
 
-    def _serve_client(self, conn: socket.socket) -> None:
-        conn.settimeout(CLIENT_IDLE_S)
+    def _note(self, what: str) -> None:
+        """One WARNING per minute at most about dropped clients, with the count since the last one, so
+        that a client hammering the socket cannot flood the journal."""
+        with self._state_lock:
+            self.dropped += 1
+            self._noted_count += 1
+            now = time.monotonic()
+            if now - self._noted_at < 60.0:
+                return
+            count, self._noted_count, self._noted_at = self._noted_count, 0, now
+        log.warning("control socket: %s (%d connection(s) dropped in the last minute)", what, count)
+
+    def _evict_for_new(self) -> _Client | None:
+        """Under _state_lock: take the connection longest without a complete request out of the table
+        (one being answered is never chosen); None if every connection is being answered."""
+        idle = [c for c in self._clients.values() if not c.busy]
+        if not idle:
+            return None
+        victim = min(idle, key=lambda c: c.since)
+        victim.evicted = True
+        del self._clients[victim.conn]
+        return victim
+
+    def _answer(self, client: _Client, line: bytes) -> None:
+        with self._state_lock:
+            if client.evicted:
+                return
+            client.busy = True
+        try:
+            client.conn.settimeout(REQUEST_DEADLINE_S)  # a client that does not read its answer is cut off
+            client.conn.sendall(encode_line(self.dispatch(line)))
+        finally:
+            with self._state_lock:
+                client.busy = False
+                client.since = time.monotonic()
+
+    def _serve_client(self, client: _Client) -> None:
+        conn = client.conn
         buf = b""
+        started: float | None = None  # when the first byte of the request under way arrived
         try:
             while not self._stopping.is_set():
                 nl = buf.find(b"\n")
                 if nl < 0:
-                    if len(buf) > MAX_LINE_BYTES:
+                    if len(buf) > MAX_REQUEST_BYTES:
                         conn.sendall(encode_line({"ok": False, "error": f"request longer than "
-                                                  f"{MAX_LINE_BYTES} bytes; closing"}))
+                                                  f"{MAX_REQUEST_BYTES} bytes; closing"}))
                         return
-                    chunk = conn.recv(65536)
+                    now = time.monotonic()
+                    if buf.strip():
+                        started = started if started is not None else now
+                        left, why = started + REQUEST_DEADLINE_S - now, "request not complete within"
+                        limit = REQUEST_DEADLINE_S
+                    else:
+                        left, why = client.since + CLIENT_IDLE_S - now, "no request within"
+                        limit = CLIENT_IDLE_S
+                    if left <= 0:
+                        self._note(f"client dropped: {why} {limit:g} s")
+                        with contextlib.suppress(OSError):
+                            conn.sendall(encode_line({"ok": False, "error": f"{why} {limit:g} s; closing"}))
+                        return
+                    conn.settimeout(left)
+                    try:
+                        chunk = conn.recv(65536)
+                    except TimeoutError:
+                        continue  # the loop sends the reason and closes
                     if not chunk:
-                        if buf.strip():  # a last request without its newline still gets an answer
-                            conn.sendall(encode_line(self.dispatch(buf)))
+                        if buf.strip() and not client.evicted:  # a last request without its newline
+                            self._answer(client, buf)
                         return
                     buf += chunk
                     continue
                 line, buf = buf[:nl], buf[nl + 1:]
                 if line.strip():
-                    conn.sendall(encode_line(self.dispatch(line)))
+                    self._answer(client, line)
+                    if client.evicted:
+                        return
+                started = None if not buf.strip() else time.monotonic()
         except (TimeoutError, ConnectionError, OSError) as err:
             log.debug("control socket: client dropped: %s", err)
         finally:
             conn.close()
             with self._state_lock:
-                self._clients.discard(conn)
+                if self._clients.get(conn) is client:
+                    del self._clients[conn]
                 self._client_threads.discard(threading.current_thread())
 
     def dispatch(self, line: bytes) -> dict:
         """Parse one request line and answer it; never raises (a bad request gets an error answer)."""
         self.requests += 1
+        if len(line) > MAX_REQUEST_BYTES:
+            self.errors += 1
+            return {"ok": False, "error": f"request longer than {MAX_REQUEST_BYTES} bytes"}
+        opens = line.count(b"[") + line.count(b"{")  # an upper bound on the depth, cheap to take
+        if opens > MAX_JSON_DEPTH and json_depth(line) > MAX_JSON_DEPTH:
+            self.errors += 1
+            return {"ok": False, "error": f"request nested deeper than {MAX_JSON_DEPTH} levels; a request is "
+                                          'a flat object, e.g. {"cmd": "status"}'}
         try:
             req = json.loads(line)
+        except RecursionError:  # json_depth bounds this; kept so no parse can ever take the thread down
+            self.errors += 1
+            return {"ok": False, "error": "request nested too deeply"}
         except (ValueError, UnicodeDecodeError) as err:
             self.errors += 1
             return {"ok": False, "error": f"bad JSON: {err}; send one JSON object per line, "
@@ -307,6 +512,8 @@ def request(path: Path | str, obj: dict, timeout: float = 5.0) -> dict:
     """Send one request to the daemon at ``path`` and return its answer. Raises GyrocalError."""
     path = Path(path)
     _check_path_length(path)
+    if path.parent.is_dir():  # a missing directory is "no daemon listening", said below
+        check_socket_dir(path.parent, server=False)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     sock.settimeout(timeout)
     try:

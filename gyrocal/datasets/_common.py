@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
-from gyrocal.errors import LogFormatError
+from gyrocal.errors import ConfigError, LogFormatError
 from gyrocal.logformat import LogData
 
 STANDARD_GRAVITY_M_S2 = 9.80665
@@ -14,10 +15,19 @@ STANDARD_GRAVITY_M_S2 = 9.80665
 
 
 def data_dir(name: str) -> Path:
-    """The project's copy ``data/NAME`` if present, else ../shared/data/NAME."""
-    repo = Path(__file__).resolve().parents[2]
-    own = repo / "data" / name
-    return own if own.exists() else repo.parent / "shared" / "data" / name
+    """The project's copy ``data/NAME`` in a source checkout, else $GYROCAL_DATA/NAME.
+
+    The datasets (22 MB) are not in the wheel: an installed gyrocal needs SRC or $GYROCAL_DATA, and
+    says so (ConfigError) instead of guessing a path outside the install."""
+    candidates = [Path(__file__).resolve().parents[2] / "data" / name]
+    if os.environ.get("GYROCAL_DATA"):
+        candidates.insert(0, Path(os.environ["GYROCAL_DATA"]) / name)
+    for c in candidates:
+        if c.exists():
+            return c
+    raise ConfigError(f"dataset {name!r}: no copy found ({', '.join(map(str, candidates))}); the datasets "
+                      "ship in the source checkout's data/ folder, not in the wheel; fix: pass SRC (the "
+                      "dataset's file or folder) or set GYROCAL_DATA to a checkout's data/ folder")
 
 
 def read_table(path: Path, delimiter: str | None, skip: int = 0) -> np.ndarray:

@@ -25,10 +25,10 @@ STANDARD_GRAVITY_M_S2 = 9.80665
 
 
 def default_dir() -> Path:
-    """/work/main/data/imu_tk_xsens (the project's copy) if present, else ../shared/data/imu_tk_xsens."""
-    repo = Path(__file__).resolve().parents[2]
-    own = repo / "data" / "imu_tk_xsens"
-    return own if own.is_dir() else repo.parent / "shared" / "data" / "imu_tk_xsens"
+    """The project's copy data/imu_tk_xsens (or $GYROCAL_DATA's); _common.data_dir says what is missing."""
+    from gyrocal.datasets._common import data_dir
+
+    return data_dir("imu_tk_xsens")
 
 
 def load_imu_tk(directory: str | Path | None = None) -> LogData:

@@ -1,4 +1,5 @@
-"""The methods: seed 000's LMS (eqs. 5-7), NLMS, RLS with forgetting, batch least squares (eqs. 2-4).
+"""The methods: seed 000's LMS (eqs. 5-7), NLMS, RLS with forgetting, batch least squares (eqs. 2-4),
+and seed 003's Kalman filter with a bias state (bias_kalman.py).
 
 Symbols (seed 000 section 2, filterpy style): z the normalised term vector f_n(x_i), W (P, 3) the
 weights w_n, y the desired output, y_est = W^T z, e = y - y_est, alpha the learning factor.
@@ -14,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.errors import ConfigError
+from gyrocal.model.bias_kalman import BiasKalman, BiasModel
 from gyrocal.model.estimator import Estimator
 from gyrocal.model.identifiability import rank_aware_solve, split_subspaces
 from gyrocal.model.normalise import Normaliser
@@ -199,15 +201,16 @@ def lstsq_reference(
     return norm.to_physical(w)
 
 
-METHODS: dict[str, type[Estimator]] = {"lms": LMS, "nlms": NLMS, "rls": RLS, "batch": BatchLS}
+METHODS: dict[str, type[Estimator]] = {"lms": LMS, "nlms": NLMS, "rls": RLS, "batch": BatchLS,
+                                       "kf": BiasKalman}
 
 
 def make_estimator(method: str, terms: Sequence[str] | TermSpec = SEED000_TERMS, **kw: Any) -> Estimator:
-    """The estimator for a method name (lms, nlms, rls, batch); keyword args go to its constructor."""
+    """The estimator for a method name (lms, nlms, rls, batch, kf); keyword args go to its constructor."""
     if method not in METHODS:
         raise ConfigError(f"unknown estimator method {method!r}; use one of {', '.join(METHODS)}")
     return METHODS[method](terms, **kw)
 
 
-__all__ = ["LMS", "NLMS", "RLS", "BatchLS", "SeedSchedule", "METHODS", "make_estimator", "lstsq_reference",
-           "split_subspaces"]
+__all__ = ["LMS", "NLMS", "RLS", "BatchLS", "BiasKalman", "BiasModel", "SeedSchedule", "METHODS",
+           "make_estimator", "lstsq_reference", "split_subspaces"]

@@ -33,6 +33,7 @@ from gyrocal.sim.unit import Faults, VirtualUnit
 log = logging.getLogger(__name__)
 
 MAX_RATE_HZ = 10_000.0
+DEFAULT_CAN_GROUP = "239.74.163.2"  # udp_multicast's IPv4 group when nothing else names a channel
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -49,11 +50,24 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="LOG.csv", help="record what was sent (+ LOG.truth.csv)")
     p.add_argument("--flash", metavar="PATH", help="keep boot count and applied set in this JSON file")
     p.add_argument("--pty-link", metavar="PATH", help="symlink PATH to the pty slave (a stable name)")
-    p.add_argument("--can-interface", default="udp_multicast",
-                   help="python-can interface (default udp_multicast)")
-    p.add_argument("--can-channel", default="239.74.163.2", help="CAN channel / multicast group")
-    p.add_argument("--can-port", type=int, help="udp_multicast UDP port (default python-can's 43113)")
-    p.add_argument("--can-config", metavar="JSON",
+    # python-can's bus flags, spelled as its own scripts (can.logger, can.player) spell them; what they
+    # leave out comes from python-can's config (CAN_INTERFACE/CAN_CHANNEL, /etc/can.conf, ~/.canrc),
+    # then udp_multicast on 239.74.163.2. The --can-* spellings are kept for existing scripts.
+    from can import VALID_INTERFACES
+
+    b = p.add_argument_group("bus arguments (python-can)")
+    b.add_argument("-i", "--interface", "--can-interface", dest="can_interface", default=None,
+                   choices=sorted(VALID_INTERFACES), metavar="INTERFACE",
+                   help="python-can interface, e.g. socketcan, virtual, udp_multicast (default: python-can's "
+                        "config, else udp_multicast)")
+    b.add_argument("-c", "--channel", "--can-channel", dest="can_channel", default=None, metavar="CHANNEL",
+                   help="CAN channel, e.g. can0, or the multicast group (default: python-can's config, "
+                        f"else {DEFAULT_CAN_GROUP})")
+    b.add_argument("-b", "--bitrate", type=int, default=None, metavar="BITRATE", help="bitrate of the bus")
+    b.add_argument("--bus-kwargs", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="more can.Bus keyword arguments, e.g. --bus-kwargs receive_own_messages=True")
+    b.add_argument("--can-port", type=int, help="udp_multicast UDP port (default python-can's 43113)")
+    b.add_argument("--can-config", metavar="JSON",
                    help="can.Bus keyword arguments as JSON text or a .json file")
     p.add_argument("--dbc", metavar="FILE.dbc", help="CAN database (default: the shipped one)")
     f = p.add_argument_group("fault injection")
@@ -84,9 +98,24 @@ def can_bus_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         if not isinstance(kw, dict) or "interface" not in kw:
             raise ConfigError(f'{where}: must be a JSON object with an "interface" field')
         return kw
-    kw: dict[str, Any] = {"interface": args.can_interface, "channel": args.can_channel}
+    from can.util import cast_from_string
+
+    from gyrocal.drivers.can_defaults import with_python_can_defaults
+
+    kw: dict[str, Any] = {k: v for k, v in (("interface", args.can_interface), ("channel", args.can_channel),
+                                            ("bitrate", args.bitrate)) if v is not None}
+    kw = with_python_can_defaults(kw, "gyrocal sim")
+    if not kw.get("interface"):
+        kw["interface"] = "udp_multicast"
+    if kw.get("channel") is None and kw["interface"] == "udp_multicast":
+        kw["channel"] = DEFAULT_CAN_GROUP
     if args.can_port is not None:
         kw["port"] = args.can_port
+    for item in args.bus_kwargs:  # as can.logger's --bus-kwargs: KEY=VALUE, values cast as python-can does
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--bus-kwargs {item!r}: write KEY=VALUE, e.g. receive_own_messages=True")
+        kw[key] = cast_from_string(value)
     return kw
 
 

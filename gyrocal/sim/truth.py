@@ -5,17 +5,26 @@ a bias that jumps at every switch-on, and white noise. Extra effects (what real 
 what the analysis must find): temperature level, temperature rate (seed 004's inputs), a warm-up
 transient, a bias random walk (seed 003), a periodic disturbance and a scale-factor error.
 
+Sensor noise beyond white (all zero by default, so the baseline stream is unchanged): coloured noise
+(a first-order Gauss-Markov process, and/or the sensor's first-order low-pass filter on the white
+noise, as an MPU-6050 DLPF), bias instability (flicker, a sum of Gauss-Markov processes spanning the
+Allan taus of interest, so the Allan deviation shows a flat floor of 0.664 B) and quantisation (the
+output rounded to an LSB). See docs/estimators.md "Noise model" for the Allan signature of each.
+
 Units: rates deg/s, gravity g, temperature degC, time s. Seed 000 Table 1 gives deg/h; we convert.
-The model renders sample chunks vectorised, carrying the random-walk state from chunk to chunk so
-that a stream cut into chunks of any size is the same stream (deterministic for a seed).
+The model renders sample chunks vectorised, carrying every noise state (walk, Gauss-Markov, flicker,
+filter) from chunk to chunk so that a stream cut into chunks of any size is the same stream
+(deterministic for a seed).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from gyrocal.model.allan import FLICKER_FLOOR, gauss_markov_avar
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 from gyrocal.sim.schedule import Schedule
 
@@ -64,13 +73,50 @@ class Effects:
     periodic_hz: float = 1.7
     scale_factor: np.ndarray = field(default_factory=_vec3)
     """Scale-factor error, dimensionless (output gains (1 + sf) on the true rate)."""
+    bias_instability_dps: np.ndarray = field(default_factory=_vec3)
+    """Bias instability B [deg/s] (datasheet figure; deg/h * DPH): flicker whose Allan deviation is
+    flat at 0.664 B over ``flicker_band_s``. Part of the drift (it is bias wander, like the walk)."""
+    flicker_band_s: tuple[float, float] = (1.0, 1000.0)
+    """Taus [s] over which the flicker floor is flat; below it the floor rolls off, above it the
+    flicker's slowest part looks like a constant bias."""
+    gm_dps: np.ndarray = field(default_factory=_vec3)
+    """Coloured noise: stationary std of a first-order Gauss-Markov rate [deg/s] (a noise, not drift)."""
+    gm_tau_s: float = 0.1
+    """Correlation time of the coloured noise [s]."""
+    lowpass_hz: float = 0.0
+    """Cut-off [Hz] of the sensor's first-order low-pass filter on the white noise (0 = none). The
+    white level ``noise_dps`` is the filter's input, so the ARW (long-tau Allan) is unchanged and the
+    per-sample std falls to noise_dps * sqrt(a / (2 - a)), a = 1 - exp(-2 pi fc / fs)."""
+    quant_lsb_dps: np.ndarray = field(default_factory=_vec3)
+    """Output quantisation step [deg/s per LSB] (0 = none), e.g. 1/131 for an MPU-6050 at 250 deg/s."""
 
     def any(self) -> bool:
         return any(
             np.any(getattr(self, f) != 0)
             for f in ("temp_dps_per_c", "temp2_dps_per_c2", "temp_rate_dps_per_cps",
-                      "warmup_dps", "random_walk_dps_per_sqrt_s", "periodic_dps", "scale_factor")
+                      "warmup_dps", "random_walk_dps_per_sqrt_s", "periodic_dps", "scale_factor",
+                      "bias_instability_dps", "gm_dps", "lowpass_hz", "quant_lsb_dps")
         )
+
+
+def flicker_components(band_s: tuple[float, float], per_decade: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Markov time constants T_k [s] and stationary stds w_k per unit B that sum to flicker.
+
+    Equal variances at log-spaced T_k give a 1/f spectrum between 1/(2 pi T_max) and 1/(2 pi T_min)
+    (the sum of Lorentzians 2 w^2 T / (1 + (2 pi f T)^2) over d ln T is ~ 1/f). T_k spans
+    band_lo / 2 .. band_hi at ``per_decade`` per decade; w is set so that the analytic Allan
+    deviation of the sum has a log-mean of 0.664 over the band (ripple about +-5 %, tests/test_noise).
+    """
+    lo, hi = float(band_s[0]), float(band_s[1])
+    if not 0.0 < lo < hi:
+        raise ValueError(f"flicker_band_s {band_s!r} must be two taus 0 < lo < hi [s]")
+    t_lo, t_hi = lo / 6.0, hi * 3.0
+    k = max(int(math.ceil(per_decade * math.log10(t_hi / t_lo))), 1) + 1
+    corr = np.geomspace(t_lo, t_hi, k)
+    taus = np.geomspace(lo, hi, 64)
+    avar = sum(gauss_markov_avar(taus, 1.0, t) for t in corr)
+    w = FLICKER_FLOOR / math.exp(0.5 * float(np.mean(np.log(avar))))
+    return corr, np.full(k, w)
 
 
 @dataclass
@@ -142,7 +188,7 @@ class SessionStream:
     """One switch-on session of a unit, rendered in chunks of samples.
 
     ``chunk(n)`` returns the next n samples as columns of the log format plus truth columns:
-    ``drift_wx..`` (the systematic drift and random walk in the output, deg/s) and ``still``.
+    ``drift_wx..`` (the systematic drift, random walk and flicker in the output, deg/s) and ``still``.
     """
 
     def __init__(
@@ -158,6 +204,7 @@ class SessionStream:
         self._rng_walk = np.random.default_rng([seed, boot, 3])
         self._rw_dps = np.zeros(3)
         self.index = 0
+        self._noise = _NoiseState(model, rate_hz, seed, boot)
 
     def chunk(self, n: int) -> dict[str, np.ndarray]:
         m = self.model
@@ -172,12 +219,14 @@ class SessionStream:
         q = m.effects.random_walk_dps_per_sqrt_s
         if np.any(q != 0):
             steps = self._rng_walk.normal(0.0, 1.0, (n, 3)) * q * np.sqrt(1.0 / self.rate_hz)
-            walk = self._rw_dps + np.cumsum(steps, axis=0)
+            # sequential sums from the carried state: bit-identical whatever the chunking
+            walk = np.cumsum(np.vstack([self._rw_dps, steps]), axis=0)[1:]
             self._rw_dps = walk[-1].copy()
             drift = drift + walk
-        gyro_noise = self._rng_gyro.normal(0.0, m.noise_dps, (n, 3))
+        drift = drift + self._noise.flicker(n)
+        gyro_noise = self._noise.coloured(self._rng_gyro.normal(0.0, m.noise_dps, (n, 3)))
         accel_noise = self._rng_accel.normal(0.0, m.accel_noise_g, (n, 3))
-        gyro = omega * (1.0 + m.effects.scale_factor) + drift + gyro_noise
+        gyro = self._noise.quantise(omega * (1.0 + m.effects.scale_factor) + drift + gyro_noise)
         accel = g + accel_noise
         cols = {"t": t, "temp": temp, "session": np.full(n, float(self.boot)), "still": still}
         for k, a in enumerate("xyz"):
@@ -187,6 +236,73 @@ class SessionStream:
             cols[f"drift_w{a}"] = drift[:, k]
             cols[f"g{a}"] = g[:, k]
         return cols
+
+
+class _NoiseState:
+    """The carried states of the coloured, flicker and filter noise of one session (all exact
+    discretisations at the sample interval, so chunking never changes the stream)."""
+
+    def __init__(self, model: TruthModel, rate_hz: float, seed: int, boot: int) -> None:
+        e, dt = model.effects, 1.0 / rate_hz
+        self.lsb = np.asarray(e.quant_lsb_dps, dtype=np.float64)
+        self.gm = np.asarray(e.gm_dps, dtype=np.float64)
+        self.lp_a = 1.0 - math.exp(-2.0 * math.pi * e.lowpass_hz * dt) if e.lowpass_hz > 0 else 0.0
+        self.bi = np.asarray(e.bias_instability_dps, dtype=np.float64)
+        # x_n = phi x_(n-1) + sqrt(1 - phi^2) sigma w_n keeps the stationary std sigma exactly
+        if np.any(self.gm != 0):
+            self.rng_gm = np.random.default_rng([seed, boot, 4])
+            self.gm_phi = math.exp(-dt / e.gm_tau_s)
+            self.gm_x = self.rng_gm.normal(0.0, 1.0, 3) * self.gm
+        if self.lp_a > 0:
+            rng_lp = np.random.default_rng([seed, boot, 6])
+            self.lp_y = rng_lp.normal(0.0, 1.0, 3) * model.noise_dps * math.sqrt(self.lp_a / (2 - self.lp_a))
+        if np.any(self.bi != 0):
+            self.rng_fl = np.random.default_rng([seed, boot, 5])
+            corr, w = flicker_components(e.flicker_band_s)
+            self.fl_phi = np.exp(-dt / corr)
+            self.fl_sig = w[:, None] * self.bi[None, :]               # (K, 3) stationary stds [deg/s]
+            self.fl_x = self.rng_fl.normal(0.0, 1.0, self.fl_sig.shape) * self.fl_sig
+
+    def flicker(self, n: int) -> np.ndarray | float:
+        """The bias-instability part of the drift for the next n samples, (n, 3) [deg/s]."""
+        if not np.any(self.bi != 0):
+            return 0.0
+        from scipy.signal import lfilter  # lazy: the default (noise-free) unit runs on a lean install
+
+        w = self.rng_fl.normal(0.0, 1.0, (n, *self.fl_sig.shape))
+        out = np.zeros((n, 3))
+        for k, phi in enumerate(self.fl_phi):
+            drive = w[:, k, :] * (math.sqrt(1.0 - phi * phi) * self.fl_sig[k])
+            x = lfilter([1.0], [1.0, -phi], drive, axis=0, zi=(phi * self.fl_x[k])[None, :])[0]
+            self.fl_x[k] = x[-1]
+            out += x
+        return out
+
+    def coloured(self, white: np.ndarray) -> np.ndarray:
+        """White noise (n, 3) [deg/s] through the sensor filter, plus the Gauss-Markov noise."""
+        out = white
+        if self.lp_a <= 0 and not np.any(self.gm != 0):
+            return out
+        from scipy.signal import lfilter  # lazy: the default (noise-free) unit runs on a lean install
+
+        if self.lp_a > 0:
+            a = self.lp_a
+            out = lfilter([a], [1.0, a - 1.0], white, axis=0, zi=((1 - a) * self.lp_y)[None, :])[0]
+            self.lp_y = out[-1].copy()
+        if np.any(self.gm != 0):
+            phi = self.gm_phi
+            drive = self.rng_gm.normal(0.0, 1.0, white.shape) * (math.sqrt(1.0 - phi * phi) * self.gm)
+            x = lfilter([1.0], [1.0, -phi], drive, axis=0, zi=(phi * self.gm_x)[None, :])[0]
+            self.gm_x = x[-1].copy()
+            out = out + x
+        return out
+
+    def quantise(self, gyro: np.ndarray) -> np.ndarray:
+        """The output rounded to its LSB on the axes that have one."""
+        if not np.any(self.lsb > 0):
+            return gyro
+        lsb = np.where(self.lsb > 0, self.lsb, 1.0)
+        return np.where(self.lsb > 0, np.round(gyro / lsb) * lsb, gyro)
 
 
 def pose_drift_rms_dps(

@@ -1,0 +1,261 @@
+"""Overlapping Allan deviation with confidence intervals, and the IEEE 952 read-off of gyro noise terms.
+
+Why here and not allantools: the daemon and the analysis need one short, vectorised function with
+error bars and the three numbers every IMU user quotes (allan_variance_ros, imu_utils, Kalibr
+configs); allantools is kept as the test oracle only (the ``[test]`` extra).
+
+Definitions (NIST SP 1065, IEEE Std 952-1997 annex C), for a rate series y [deg/s] sampled at
+fs [Hz], tau0 = 1/fs, tau = m tau0, angle x_i = tau0 * sum_{j<i} (y_j - mean y) (x_0 = 0, N + 1 points):
+
+    sigma^2(tau) = sum_i (x_{i+2m} - 2 x_{i+m} + x_i)^2 / (2 tau^2 (N + 1 - 2m))      (SP 1065 eq. 11)
+
+Noise terms read off the deviation sigma(tau) [deg/s]:
+
+    angle random walk   N [deg/s/sqrt(Hz) = deg/sqrt(s)]: sigma = N / sqrt(tau), read at tau = 1 s
+    bias instability    B [deg/s]: flat floor sigma_min = sqrt(2 ln 2 / pi) B = 0.664 B
+    rate random walk    K [deg/s/sqrt(s)]: sigma = K sqrt(tau / 3), read at tau = 3 s
+
+ARW and RRW are fitted as lines of fixed slope (-1/2, +1/2) in log-log through the points of the
+curve whose local slope is closest to that value (the allan_variance_ros / imu_utils recipe); the
+error bar of each read-off comes from the chi-squared interval of the points it used. Multiply by
+3600 for deg/h, by 60 for deg/sqrt(h) (N), by 3600 * 60 for deg/h/sqrt(h) (K).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+ONE_SIGMA_CI = math.erf(1.0 / math.sqrt(2.0))
+"""Probability inside +-1 sigma (0.6827): the confidence of every interval here by default."""
+
+FLICKER_FLOOR = math.sqrt(2.0 * math.log(2.0) / math.pi)
+"""Allan deviation floor of flicker rate noise per unit bias instability B (0.664, IEEE 952)."""
+
+
+@dataclass(frozen=True)
+class AllanCurve:
+    """An overlapping Allan deviation at octave taus, with its confidence interval.
+
+    All arrays have one entry per tau. ``alpha`` is the power-law noise type used for the degrees
+    of freedom (frequency-PSD exponent: +2 white angle, 0 white rate (ARW), -1 flicker rate (bias
+    instability), -2 rate random walk), identified from the data by lag-1 autocorrelation.
+    """
+
+    tau_s: np.ndarray
+    adev: np.ndarray
+    """Allan deviation [units of the input, e.g. deg/s]."""
+    lo: np.ndarray
+    hi: np.ndarray
+    """Confidence interval of adev at ``ci`` (chi-squared with ``edf`` degrees of freedom)."""
+    edf: np.ndarray
+    alpha: np.ndarray
+    m: np.ndarray
+    n_terms: np.ndarray
+    """Number of second differences averaged at each tau (N + 1 - 2m)."""
+    ci: float = ONE_SIGMA_CI
+
+    def as_dict(self) -> dict:
+        """Plain lists for JSON."""
+        return {"tau_s": self.tau_s.tolist(), "adev": self.adev.tolist(), "lo": self.lo.tolist(),
+                "hi": self.hi.tolist(), "edf": self.edf.tolist(), "alpha": self.alpha.tolist()}
+
+
+@dataclass(frozen=True)
+class NoiseTerm:
+    """A read-off value with its confidence interval and where on the curve it was read."""
+
+    value: float
+    lo: float
+    hi: float
+    tau_s: tuple[float, ...]
+    """The taus [s] whose points the value was read from."""
+
+    def as_dict(self) -> dict:
+        return {"value": self.value, "lo": self.lo, "hi": self.hi, "tau_s": list(self.tau_s)}
+
+
+@dataclass(frozen=True)
+class NoiseTerms:
+    """IEEE 952 read-off of one axis: N (ARW), B (bias instability), K (rate random walk).
+
+    Units for a series in deg/s: N deg/sqrt(s), B deg/s, K deg/s/sqrt(s). A term whose slope the
+    curve never shows is still read (the line closest to it), so compare it with the curve.
+    """
+
+    arw: NoiseTerm
+    bias_instability: NoiseTerm
+    rate_random_walk: NoiseTerm
+
+    def as_dict(self) -> dict:
+        return {"arw": self.arw.as_dict(), "bias_instability": self.bias_instability.as_dict(),
+                "rate_random_walk": self.rate_random_walk.as_dict()}
+
+
+def octave_m(n: int, max_m: int | None = None) -> np.ndarray:
+    """Averaging factors 1, 2, 4, ... with at least two second differences (N + 1 - 2m >= 2)."""
+    top = (n - 1) // 2 if max_m is None else min(max_m, (n - 1) // 2)
+    if top < 1:
+        return np.zeros(0, dtype=np.int64)
+    return 2 ** np.arange(int(math.floor(math.log2(top))) + 1, dtype=np.int64)
+
+
+def oadev(y: np.ndarray, rate_hz: float, m: np.ndarray | None = None,
+          max_tau_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Overlapping Allan deviation of rate samples y (N,): (tau [s], adev, n_terms) at octave m.
+
+    Same numbers as ``allantools.oadev(y, rate, data_type="freq", taus="octave")``.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    if y.ndim != 1 or not np.isfinite(y).all():
+        raise ValueError("oadev wants a 1-D series of finite samples; drop NaNs and gaps first")
+    tau0 = 1.0 / float(rate_hz)
+    if m is None:
+        max_m = None if max_tau_s is None else int(math.floor(max_tau_s / tau0 + 1e-9))
+        m = octave_m(y.size, max_m)
+    m = np.asarray(m, dtype=np.int64)
+    x = np.concatenate(([0.0], np.cumsum(y - y.mean()) * tau0))
+    dev = np.empty(m.size)
+    nt = np.empty(m.size, dtype=np.int64)
+    for i, mj in enumerate(m):
+        d = x[2 * mj:] - 2.0 * x[mj:-mj] + x[:-2 * mj]
+        nt[i] = d.size
+        dev[i] = math.sqrt(float(d @ d) / (2.0 * d.size)) / (mj * tau0)
+    return m * tau0, dev, nt
+
+
+def edf_simple(n_phase: int, m: int, alpha: int) -> float:
+    """Equivalent degrees of freedom of the overlapping ADEV (NIST SP 1065 Table 5).
+
+    n_phase is the number of angle points (samples + 1); alpha the frequency-PSD exponent.
+    """
+    n, mm = float(n_phase), float(m)
+    if alpha == 2:
+        return (n + 1) * (n - 2 * mm) / (2 * (n - mm))
+    if alpha == 1:
+        return math.exp(math.sqrt(math.log((n - 1) / (2 * mm)) * math.log((2 * mm + 1) * (n - 1) / 4)))
+    if alpha == 0:
+        return (3 * (n - 1) / (2 * mm) - 2 * (n - 2) / n) * 4 * mm**2 / (4 * mm**2 + 5)
+    if alpha == -1:
+        return 2 * (n - 2) / (2.3 * n - 4.9) if m == 1 else 5 * n**2 / (4 * mm * (n + 3 * mm))
+    if alpha == -2:
+        return (n - 2) / (mm * (n - 3) ** 2) * ((n - 1) ** 2 - 3 * mm * (n - 1) + 4 * mm**2)
+    raise ValueError(f"alpha {alpha!r} must be one of 2, 1, 0, -1, -2")
+
+
+def noise_alpha(y: np.ndarray, m: int, default: int = 0) -> int:
+    """Power-law noise type at averaging m by lag-1 autocorrelation (Riley & Greenhall 2004).
+
+    Averages y in blocks of m, removes a line, differences until the lag-1 ratio rho < 0.25 (at most
+    twice): alpha = -round(2 rho) - 2 d, clipped to [-2, 2]. Fewer than 30 blocks: ``default``.
+    """
+    k = y.size // m
+    if k < 30:
+        return default
+    z = y[:k * m].reshape(k, m).mean(axis=1)
+    t = np.arange(k, dtype=np.float64)
+    z = z - np.polyval(np.polyfit(t, z, 1), t)
+    d = 0
+    while True:
+        zc = z - z.mean()
+        den = float(zc @ zc)
+        r1 = float(zc[:-1] @ zc[1:]) / den if den > 0 else 0.0
+        rho = r1 / (1.0 + r1)
+        if rho < 0.25 or d >= 2:
+            return int(np.clip(int(-round(2 * rho) - 2 * d), -2, 2))
+        z = np.diff(z)
+        d += 1
+
+
+def chi2_interval(dev: np.ndarray, edf: np.ndarray,
+                  ci: float = ONE_SIGMA_CI) -> tuple[np.ndarray, np.ndarray]:
+    """Interval of a deviation with ``edf`` degrees of freedom at confidence ci (SP 1065 eq. 45)."""
+    from scipy import stats  # lazy: the simulator imports this module on a lean install (no scipy)
+
+    p = (1.0 - ci) / 2.0
+    dev, edf = np.asarray(dev, dtype=np.float64), np.asarray(edf, dtype=np.float64)
+    lo = dev * np.sqrt(edf / stats.chi2.ppf(1.0 - p, edf))
+    hi = dev * np.sqrt(edf / stats.chi2.ppf(p, edf))
+    return lo, hi
+
+
+def allan_curve(y: np.ndarray, rate_hz: float, max_tau_s: float | None = None,
+                ci: float = ONE_SIGMA_CI) -> AllanCurve:
+    """Overlapping ADEV of y (N,) [deg/s] at octave taus up to max_tau_s [s], with intervals at ci.
+
+    The noise type of each tau is identified from the data; where too few blocks remain (long
+    tau) the last identified type is carried on.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    tau, dev, nt = oadev(y, rate_hz, max_tau_s=max_tau_s)
+    m = np.round(tau * rate_hz).astype(np.int64)
+    alpha = np.empty(m.size, dtype=np.int64)
+    edf = np.empty(m.size)
+    last = 0
+    for i, mj in enumerate(m):
+        last = noise_alpha(y, int(mj), default=last)
+        alpha[i] = last
+        edf[i] = max(edf_simple(y.size + 1, int(mj), last), 1.0)
+    lo, hi = chi2_interval(dev, edf, ci)
+    return AllanCurve(tau, dev, lo, hi, edf, alpha, m, nt, ci)
+
+
+def _slope_line(curve: AllanCurve, slope: float, at_tau_s: float, region: np.ndarray) -> NoiseTerm:
+    """Value at ``at_tau_s`` of the line of fixed log-log ``slope`` through the best-matching points.
+
+    The points are those (within ``region``) whose local slope is within 0.25 of ``slope``; if none,
+    the single point closest to that slope. Their log-offsets are averaged with weights edf, and the
+    interval is the chi-squared interval with the summed edf (the points are treated as independent
+    estimates of one line, which is slightly optimistic for overlapping taus).
+    """
+    lt, ld = np.log(curve.tau_s), np.log(curve.adev)
+    idx = np.flatnonzero(region)
+    if idx.size == 0:
+        return NoiseTerm(float("nan"), float("nan"), float("nan"), ())
+    if idx.size == 1:
+        pick = idx
+    else:
+        local = np.gradient(ld[idx], lt[idx])
+        close = np.abs(local - slope)
+        pick = idx[close <= 0.25] if (close <= 0.25).any() else idx[[int(np.argmin(close))]]
+    w = curve.edf[pick]
+    offset = float(np.sum(w * (ld[pick] - slope * lt[pick])) / np.sum(w))
+    value = math.exp(offset + slope * math.log(at_tau_s))
+    lo, hi = chi2_interval(np.array([value]), np.array([float(np.sum(w))]), curve.ci)
+    return NoiseTerm(value, float(lo[0]), float(hi[0]), tuple(float(t) for t in curve.tau_s[pick]))
+
+
+def read_noise_terms(curve: AllanCurve) -> NoiseTerms:
+    """N, B, K of one axis from its Allan curve (module docstring for the definitions).
+
+    ARW: slope -1/2 at tau = 1 s, from taus up to the curve's minimum. RRW: slope +1/2 at tau = 3 s,
+    from taus beyond the minimum (or the last point). B: the minimum / 0.664, with that point's
+    interval.
+    """
+    if curve.tau_s.size == 0:
+        nan = NoiseTerm(float("nan"), float("nan"), float("nan"), ())
+        return NoiseTerms(nan, nan, nan)
+    i_min = int(np.argmin(curve.adev))
+    k = np.arange(curve.tau_s.size)
+    arw = _slope_line(curve, -0.5, 1.0, k <= max(i_min, 0))
+    rrw = _slope_line(curve, 0.5, 3.0, k >= min(i_min, k.size - 1))
+    b = NoiseTerm(float(curve.adev[i_min] / FLICKER_FLOOR), float(curve.lo[i_min] / FLICKER_FLOOR),
+                  float(curve.hi[i_min] / FLICKER_FLOOR), (float(curve.tau_s[i_min]),))
+    return NoiseTerms(arw, b, rrw)
+
+
+def gauss_markov_avar(tau_s: np.ndarray, sigma: float, corr_s: float) -> np.ndarray:
+    """Allan variance of a first-order Gauss-Markov rate with stationary std sigma and time constant T.
+
+    sigma^2(tau) = (2 sigma^2 T / tau) [1 - (T / (2 tau)) (3 - 4 e^(-tau/T) + e^(-2 tau/T))]
+    (continuous time; El-Sheimy, Hou & Niu 2008, eq. 13 with q_c^2 = 2 sigma^2 / T). It rises as
+    2 sigma^2 tau / (3 T) at small tau, peaks near tau = 1.89 T, and falls as 2 sigma^2 T / tau.
+    """
+    x = np.asarray(tau_s, dtype=np.float64) / corr_s
+    # 1 - (3 - 4e^-x + e^-2x) / (2x), written to keep precision at small x
+    bracket = 1.0 - (3.0 - 4.0 * np.exp(-x) + np.exp(-2.0 * x)) / (2.0 * x)
+    small = x < 1e-3
+    bracket = np.where(small, x * x / 3.0 - x**3 / 4.0, bracket)
+    return 2.0 * sigma**2 / x * bracket

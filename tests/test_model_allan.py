@@ -1,0 +1,97 @@
+"""model/allan.py against allantools (the oracle, test extra only) and against known noise levels."""
+
+from __future__ import annotations
+
+import allantools
+import numpy as np
+import pytest
+from allantools import ci as at_ci
+
+from gyrocal.model.allan import (
+    FLICKER_FLOOR,
+    allan_curve,
+    chi2_interval,
+    edf_simple,
+    gauss_markov_avar,
+    noise_alpha,
+    oadev,
+    read_noise_terms,
+)
+
+
+@pytest.mark.parametrize("n", [3, 5, 1000, 4097, 30001])
+def test_oadev_equals_allantools_octave(n: int) -> None:
+    rng = np.random.default_rng(n)
+    y = rng.normal(0.3, 0.01, n) + np.cumsum(rng.normal(0, 1e-4, n))
+    tau, dev, nt = oadev(y, 50.0)
+    t2, d2, _, n2 = allantools.oadev(y, rate=50.0, data_type="freq", taus="octave")
+    assert tau.size == t2.size
+    np.testing.assert_allclose(tau, t2, rtol=1e-12)
+    np.testing.assert_allclose(dev, d2, rtol=1e-10)
+    np.testing.assert_array_equal(nt, n2)
+
+
+def test_too_short_or_nonfinite_input() -> None:
+    assert oadev(np.ones(2), 1.0)[0].size == 0
+    with pytest.raises(ValueError, match="finite"):
+        oadev(np.array([0.0, np.nan, 1.0, 2.0]), 1.0)
+
+
+def test_edf_and_interval_equal_allantools() -> None:
+    for alpha in (2, 1, 0, -1, -2):
+        for n, m in ((1001, 1), (1001, 2), (1001, 64), (100_001, 512)):
+            assert edf_simple(n, m, alpha) == pytest.approx(at_ci.edf_simple(n, m, alpha), rel=1e-12)
+    dev, edf = np.array([0.1, 2.0, 3e-4]), np.array([1.5, 40.0, 3000.0])
+    lo, hi = chi2_interval(dev, edf)
+    for k in range(3):
+        lo2, hi2 = at_ci.confidence_interval(dev[k], edf[k])
+        assert lo[k] == pytest.approx(lo2, rel=1e-12) and hi[k] == pytest.approx(hi2, rel=1e-12)
+
+
+def test_noise_id_equals_allantools_on_white_and_walk() -> None:
+    rng = np.random.default_rng(1)
+    white = rng.normal(0, 1, 20000)
+    walk = np.cumsum(rng.normal(0, 1, 20000))
+    for y, want in ((white, 0), (walk, -2)):
+        for m in (1, 4, 16):
+            ours = noise_alpha(y, m)
+            assert ours == at_ci.autocorr_noise_id(y, m, data_type="freq")[0]
+            assert ours == want
+
+
+def test_read_off_recovers_arw_and_rrw_within_their_intervals() -> None:
+    fs, n = 100.0, 400_000
+    arw, rrw = 0.02, 2e-4                       # deg/sqrt(s), deg/s/sqrt(s)
+    rng = np.random.default_rng(7)
+    y = rng.normal(0, arw * np.sqrt(fs), n) + np.cumsum(rng.normal(0, rrw / np.sqrt(fs), n))
+    terms = read_noise_terms(allan_curve(y, fs))
+    assert terms.arw.lo < arw < terms.arw.hi or terms.arw.value == pytest.approx(arw, rel=0.01)
+    assert terms.rate_random_walk.value == pytest.approx(rrw, rel=0.3)
+    assert terms.rate_random_walk.lo < terms.rate_random_walk.value < terms.rate_random_walk.hi
+    assert 1.0 in terms.arw.tau_s or min(terms.arw.tau_s) < 1.0 < max(terms.arw.tau_s)
+
+
+def test_interval_widens_with_tau_and_covers_the_white_truth() -> None:
+    fs, sigma = 10.0, 1.0
+    covered = total = 0
+    for seed in range(20):
+        y = np.random.default_rng(seed).normal(0, sigma, 4000)
+        c = allan_curve(y, fs)
+        truth = sigma / np.sqrt(c.m)              # white: adev = sigma / sqrt(m)
+        covered += int(np.sum((c.lo <= truth) & (truth <= c.hi)))
+        total += truth.size
+        assert np.all(c.lo < c.adev) and np.all(c.adev < c.hi)
+    assert 0.55 < covered / total < 0.85          # a 68 % interval
+
+
+def test_gauss_markov_avar_matches_a_simulated_process() -> None:
+    fs, T, s = 20.0, 2.0, 0.05
+    phi = np.exp(-1 / (fs * T))
+    rng = np.random.default_rng(3)
+    from scipy.signal import lfilter
+    x = lfilter([np.sqrt(1 - phi**2) * s], [1, -phi], rng.normal(0, 1, 400_000))
+    tau, dev, _ = oadev(x, fs, max_tau_s=100.0)
+    model = np.sqrt(gauss_markov_avar(tau, s, T))
+    sel = tau >= 0.2
+    np.testing.assert_allclose(dev[sel], model[sel], rtol=0.1)
+    assert FLICKER_FLOOR == pytest.approx(0.6643, abs=1e-4)
