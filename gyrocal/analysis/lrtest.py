@@ -47,6 +47,7 @@ class AxisLR:
     cols: dict[str, np.ndarray]  # cause -> design columns (M, p)
     look_elsewhere: dict[str, float]
     models: dict[tuple[str, ...], NoiseModel] = field(default_factory=dict)
+    tests: dict[tuple[tuple[str, ...], str], tuple[float, float]] = field(default_factory=dict)
 
     def design(self, causes: list[str] | tuple[str, ...]) -> np.ndarray:
         return np.column_stack([self.prob.base, *[self.cols[c] for c in causes]])
@@ -86,6 +87,9 @@ class AxisLR:
         an effect left in the residual would otherwise be taken for wander (a warm-up for a walk).
         Two-sided in the sense of a chi-square on the candidate's p columns.
         """
+        key = (tuple(chosen), cause)
+        if key in self.tests:
+            return self.tests[key]
         model = self.model_for([*chosen, cause])
         gls = StateSpaceGLS(model, self.prob.cols["t"], self.prob.usable.session)
         y = self.prob.y[:, self.axis]
@@ -94,7 +98,8 @@ class AxisLR:
         d = _q(g, np.arange(n0), self.prob.n) - _q(g, np.arange(g.shape[0] - 1), self.prob.n)
         k = max(int(self.cols[cause].shape[1]), 1)
         p = float(min(1.0, self.look_elsewhere.get(cause, 1.0) * stats.chi2.sf(max(d, 0.0), k)))
-        return float(d), p
+        self.tests[key] = (float(d), p)
+        return self.tests[key]
 
 
 def _q(gram: np.ndarray, idx: np.ndarray, n: int) -> float:
