@@ -22,17 +22,18 @@ import importlib
 import logging
 import os
 import sys
+from typing import NoReturn
 
 from gyrocal import __version__
-from gyrocal.daemon.logsetup import priority_prefix, set_verbosity, setup_logging
+from gyrocal.daemon.logsetup import journal_stream, priority_prefix, set_verbosity, setup_logging
 from gyrocal.errors import GyrocalError
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("gyrocal.daemon.demo", "run the daemon against the virtual unit, push, check the drift"),
     "run": ("gyrocal.daemon.cli_run", "the calibrator daemon (systemd service)"),
     "sim": ("gyrocal.sim.cli_sim", "the virtual strapdown unit on a pty or a CAN bus"),
-    "fit": ("gyrocal.model.cli_fit", "fit drift coefficients to a log (Contract 3)"),
-    "analyze": ("gyrocal.analysis.cli_analyze", "what the simulation gets wrong (Contract 2)"),
+    "fit": ("gyrocal.model.cli_fit", "fit drift coefficients to a recorded log (docs/logformat.md)"),
+    "analyze": ("gyrocal.analysis.cli_analyze", "what the simulation gets wrong (docs/analysis.md)"),
     "convert": ("gyrocal.analysis.convert", "turn a shipped real dataset into the log format"),
     "status": ("gyrocal.daemon.cli_control", "state of a running daemon"),
     "recalibrate": ("gyrocal.daemon.cli_control", "start a new calibration session now"),
@@ -42,9 +43,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "completion": ("gyrocal.completion", "print a shell completion script (bash)"),
 }
 
+DESCRIPTION = "gyrocal: on-line drift calibration of a strapdown gyro unit (daemon, simulator, analysis)."
+EPILOG = """\
+Results and JSON go to stdout, log lines and errors to stderr; -v/-q work before or after COMMAND.
+`gyrocal COMMAND --help` for one command. Bash completion: gyrocal completion bash > \\
+  ~/.local/share/bash-completion/completions/gyrocal. Daemon operation: docs/operations.md."""
+
 DEFAULT_LOG_LEVEL = {"run": "INFO"}  # every other command: WARNING
 EXTRAS = {"scipy": "analysis", "matplotlib": "analysis"}
 """Top-level packages of the optional extras -> the extra that installs them."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the journald priority on its usage-error line (a bad ExecStart= is a fatal error)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{priority_prefix(logging.ERROR)}{self.prog}: error: {message}\n")
 
 
 def _add_verbosity(p: argparse.ArgumentParser, dest: str) -> None:
@@ -58,7 +73,8 @@ def _add_verbosity(p: argparse.ArgumentParser, dest: str) -> None:
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gyrocal", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="gyrocal", description=DESCRIPTION, epilog=EPILOG,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"gyrocal {__version__}")
     _add_verbosity(parser, "_top")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -130,6 +146,14 @@ def main(argv: list[str] | None = None) -> int:
         return 141  # 128 + SIGPIPE, what a shell shows for a C tool stopped the same way
     except KeyboardInterrupt:
         return 130
+    except Exception:
+        if not journal_stream():
+            raise  # a terminal shows Python's traceback as usual
+        # under journald, a crash's traceback keeps its priority on every line (journalctl -p err)
+        if not any(getattr(h, "gyrocal", False) for h in logging.getLogger().handlers):
+            setup_logging("INFO")  # crashed before the command set logging up
+        logging.getLogger("gyrocal").critical("gyrocal %s crashed", command or "", exc_info=True)
+        return 1
 
 
 if __name__ == "__main__":

@@ -53,6 +53,41 @@ def test_the_fatal_error_line_carries_priority_3_when_stderr_is_the_journal(shor
     assert len(lines) == 1 and lines[0].startswith("<3>gyrocal: error: no gyrocal daemon listening")
 
 
+def _under_journal(*args: str) -> tuple[int, str]:
+    r, w = os.pipe()
+    st = os.fstat(w)
+    env = {**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"}
+    proc = subprocess.Popen([sys.executable, "-m", "gyrocal.cli", *args], stderr=w, stdout=subprocess.DEVNULL,
+                            env=env)
+    os.close(w)
+    with os.fdopen(r) as f:
+        err = f.read()
+    return proc.wait(30), err
+
+
+def test_a_usage_error_under_journald_has_its_priority() -> None:
+    code, err = _under_journal("run", "--no-such-flag")
+    assert code == 2
+    assert err.splitlines()[-1].startswith("<3>gyrocal: error: unrecognized arguments: --no-such-flag")
+    code, err = _under_journal("run", "--log-level", "LOUD")
+    assert code == 2
+    assert err.splitlines()[-1].startswith("<3>gyrocal run: error: argument --log-level: invalid choice")
+
+
+def test_a_traceback_under_journald_keeps_its_priority_on_every_line(capsys, monkeypatch) -> None:
+    from gyrocal.daemon.logsetup import setup_logging
+
+    monkeypatch.setenv("JOURNAL_STREAM", "8:1234")
+    setup_logging("INFO")
+    try:
+        raise RuntimeError("boom")
+    except RuntimeError:
+        logging.getLogger("gyrocal").critical("gyrocal run crashed", exc_info=True)
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) > 3 and all(ln.startswith("<2>") for ln in lines)
+    assert lines[0] == "<2>gyrocal: gyrocal run crashed" and lines[-1] == "<2>RuntimeError: boom"
+
+
 def test_no_priority_prefix_when_stderr_is_not_the_journal_stream(short_dir: Path) -> None:
     """JOURNAL_STREAM inherited by a child whose stderr goes elsewhere: plain text (systemd.exec(5))."""
     out = _gyrocal("status", "--socket", str(short_dir / "none.sock"), env={"JOURNAL_STREAM": "1:1"})
@@ -120,12 +155,21 @@ def test_v_and_q_work_before_and_after_the_command(short_dir: Path, argv: list[s
     set_verbosity(0, 0)
 
 
+def _help(cmd: str) -> str:
+    import argparse
+
+    from gyrocal.cli import build_parser
+
+    parser = build_parser([cmd])
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[cmd].format_help()
+
+
 def test_every_command_takes_v_and_q_and_run_keeps_log_level() -> None:
-    for cmd in ("run", "sim", "status", "fit", "push", "completion", "install-files"):
-        out = _gyrocal(cmd, "--help")
-        assert out.returncode == 0, out.stderr
-        assert "-v, --verbose" in out.stdout and "-q, --quiet" in out.stdout, cmd
-    assert "--log-level" in _gyrocal("run", "--help").stdout
+    for cmd in ("run", "demo", "sim", "status", "fit", "push", "rollback", "completion", "install-files"):
+        text = _help(cmd)
+        assert "-v" in text and "--verbose" in text and "-q, --quiet" in text, cmd
+    assert "--log-level" in _help("run")
 
 
 # --- status: tidy text, --watch ------------------------------------------------------------------------

@@ -368,10 +368,11 @@ def test_eight_slow_clients_do_not_lock_the_operator_out(server) -> None:
         s = _connect(srv.path)
         s.sendall(b'{"cmd": "sta')
         slow.append(s)
-    deadline = 50
+    deadline = 500
     while len(srv._clients) < control.MAX_CLIENTS and deadline:  # the acceptor registers them in turn
         threading.Event().wait(0.02)
         deadline -= 1
+    assert len(srv._clients) == control.MAX_CLIENTS
     for _ in range(3):  # operators keep getting in, each evicting the most idle slow client
         assert request(srv.path, {"cmd": "status"})["state"] == "MONITORING"
     evicted = [s for s in slow if select.select([s], [], [], 0)[0]]
@@ -467,3 +468,26 @@ def test_the_per_user_fallback_is_private(short_dir: Path, monkeypatch) -> None:
     assert sock == short_dir / "gyrocal" / "control.sock"
     with ControlServer(sock, FakeDaemon()):
         assert stat.S_IMODE(os.stat(sock.parent).st_mode) == 0o700
+
+
+def test_clients_that_never_read_their_answers_cannot_hold_the_slots(short_dir: Path) -> None:
+    """Eight clients flood requests for a large answer and never read: their sends block, yet the
+    operator still gets in (a client blocked in sending its answer can be evicted)."""
+    import gyrocal.daemon.control as control
+
+    big = {"ok": True, "pad": "x" * 200_000}
+    with ControlServer(short_dir / "c.sock", lambda req: dict(big) if req.get("cmd") == "big"
+                       else {"ok": True, "state": "UP"}) as srv:
+        hogs = []
+        for _ in range(control.MAX_CLIENTS):
+            s = _connect(srv.path)
+            s.sendall(b'{"cmd": "big"}\n' * 20)
+            hogs.append(s)
+        deadline = 500
+        while len(srv._clients) < control.MAX_CLIENTS and deadline:
+            threading.Event().wait(0.02)
+            deadline -= 1
+        threading.Event().wait(0.3)  # let their answers fill the socket buffers
+        assert request(srv.path, {"cmd": "status"}, timeout=5)["state"] == "UP"
+        for s in hogs:
+            s.close()

@@ -33,6 +33,9 @@ def test_default_and_example_configs_load() -> None:
         ("link: {url: /dev/x}\nfoo: 1\n", ["unknown field 'foo'"]),
         ("link: [1, 2\n", ["not valid YAML"]),
         ("link: {kind: serial}\n", ["link.url", "name the device"]),
+        ("link: {url: ''}\n", ["link.url", "name the device"]),
+        ("link: {url: /dev/x}\nvirtual_unit: {extra_args: [--nak-next, 1]}\n",
+         ["virtual_unit.extra_args", "list of strings"]),
     ],
 )
 def test_broken_config_names_file_field_and_fix(tmp_path: Path, body: str, needles: list[str]) -> None:

@@ -84,9 +84,9 @@ def test_the_completion_script_is_valid_bash_and_completes_commands_and_options(
     bash = "/bin/bash"
     if not Path(bash).exists():
         pytest.skip("no bash")
-    script = subprocess.run([sys.executable, "-m", "gyrocal.cli", "completion", "bash"], capture_output=True,
-                            text=True, check=True, timeout=120).stdout
-    (tmp_path / "c.sh").write_text(script)
+    from gyrocal.completion import script
+
+    (tmp_path / "c.sh").write_text(script())
     probe = f"""source {tmp_path / 'c.sh'}
 COMP_WORDS=(gyrocal sta); COMP_CWORD=1; _gyrocal; echo "${{COMPREPLY[*]}}"
 COMP_WORDS=(gyrocal status --wa); COMP_CWORD=2; _gyrocal; echo "${{COMPREPLY[*]}}"

@@ -255,6 +255,11 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
         _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
     if est["method"] not in ("rls", "nlms", "lms"):
         _fail(name, "estimator.method", est["method"], "write rls, nlms or lms")
+    if not link["url"].strip():
+        _fail(name, "link.url", link["url"], "name the device, e.g. /dev/gyrocal-imu, or write `auto`")
+    extra = s["virtual_unit"]["extra_args"]
+    if not all(isinstance(a, str) for a in extra):
+        _fail(name, "virtual_unit.extra_args", extra, 'write a list of strings, e.g. ["--nak-next", "1"]')
     # ranges of single fields are checked in _check_field (_RANGES); here only what ties fields together
     if s["monitor"]["window_s"] < val["block_s"]:
         _fail(name, "monitor.window_s", s["monitor"]["window_s"],

@@ -205,6 +205,7 @@ class _Client:
     conn: socket.socket
     since: float = field(default_factory=time.monotonic)
     busy: bool = False
+    sending: bool = False
     evicted: bool = False
 
 
@@ -362,14 +363,13 @@ class ControlServer:
             if victim is not None:
                 self._note(f"{MAX_CLIENTS} connections open; evicted the one idle for "
                            f"{time.monotonic() - victim.since:.0f} s")
-                with contextlib.suppress(OSError):
-                    victim.conn.sendall(encode_line({"ok": False, "error": "connection evicted: too many "
-                                                     "control connections, and this one was the most idle"}))
+                self._goodbye(victim)
                 with contextlib.suppress(OSError):
                     victim.conn.shutdown(socket.SHUT_RDWR)  # its thread wakes from recv and exits
             if full:  # every connection is being answered right now (the handler is slow): say so
                 with contextlib.suppress(OSError):
-                    conn.sendall(encode_line({"ok": False, "error": "too many control connections; retry"}))
+                    conn.send(encode_line({"ok": False, "error": "too many control connections; retry"}),
+                              socket.MSG_DONTWAIT)
                 conn.close()
                 continue
             t = threading.Thread(target=self._serve_client, args=(client,), name="gyrocal-control-client",
@@ -377,6 +377,20 @@ class ControlServer:
             with self._state_lock:
                 self._client_threads.add(t)
             t.start()
+
+    @staticmethod
+    def _goodbye(victim: _Client) -> None:
+        """Tell an evicted client why, unless its thread is sending (the line would split its answer)
+        or its buffer is full: the acceptor must never wait on a client (socket.send waits out the
+        socket's timeout, whatever the flags, so the descriptor is written directly, once)."""
+        if victim.sending:
+            return
+        line = encode_line({"ok": False, "error": "connection evicted: too many control connections, and "
+                                                  "this one was the most idle"})
+        with contextlib.suppress(OSError, ValueError):
+            fd = victim.conn.fileno()
+            if select.select([], [fd], [], 0)[1]:
+                os.write(fd, line)
 
     def _note(self, what: str) -> None:
         """One WARNING per minute at most about dropped clients, with the count since the last one, so
@@ -407,12 +421,22 @@ class ControlServer:
                 return
             client.busy = True
         try:
-            client.conn.settimeout(REQUEST_DEADLINE_S)  # a client that does not read its answer is cut off
-            client.conn.sendall(encode_line(self.dispatch(line)))
+            reply = encode_line(self.dispatch(line))
         finally:
             with self._state_lock:
                 client.busy = False
                 client.since = time.monotonic()
+                client.sending = not client.evicted
+        if not client.sending:
+            return  # evicted while its request ran: the acceptor's goodbye is the only writer
+        # evictable again while the answer is sent: a client that does not read its answers cannot hold
+        # a slot by filling its socket buffer (eviction's shutdown() ends this sendall at once)
+        try:
+            client.conn.settimeout(REQUEST_DEADLINE_S)
+            client.conn.sendall(reply)
+        finally:
+            with self._state_lock:
+                client.sending = False
 
     def _serve_client(self, client: _Client) -> None:
         conn = client.conn

@@ -58,9 +58,13 @@ def effective_level(base: str) -> str:
 
 
 class _JournalFormatter(logging.Formatter):
+    """``<prio>name: message``, the prefix repeated on every line of a multi-line record (a traceback):
+    journald makes one entry per line, and a line without a prefix would be filed at info level."""
+
     def format(self, record: logging.LogRecord) -> str:
         prio = _PRIORITY.get(record.levelno, 6)
-        return f"<{prio}>{record.name}: {super().format(record)}"
+        first, *rest = super().format(record).split("\n")
+        return "\n".join([f"<{prio}>{record.name}: {first}", *(f"<{prio}>{line}" for line in rest)])
 
 
 class _StderrHandler(logging.StreamHandler):
