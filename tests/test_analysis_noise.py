@@ -72,6 +72,8 @@ def test_coloured_null_is_named_coloured_noise_and_nothing_else() -> None:
     f = r["findings"][0]
     assert all(v >= 0.02 for v in f["params"]["fidelity_gain_decades"].values())
     assert r["fidelity"]["after"]["x"] < r["fidelity"]["before"]["x"]
+    arw = r["allan_terms"]["x"]["arw"]
+    assert arw["lo"] <= arw["value"] <= arw["hi"] and arw["value"] > 0
 
 
 def test_flicker_and_quantised_nulls_raise_no_regression_cause() -> None:

@@ -32,6 +32,7 @@ from gyrocal.analysis.segments import AXES, usable_samples
 from gyrocal.analysis.timestamps import describe, retime
 from gyrocal.errors import GyrocalError
 from gyrocal.logformat import LogData
+from gyrocal.model.allan import allan_curve, read_noise_terms
 from gyrocal.model.terms import SEED000_TERMS, derived_columns
 
 DEFAULT_TAU_S = 1.0
@@ -168,6 +169,7 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
         "noise_dps": dict(zip(AXES, sigma.tolist(), strict=True)),
         "noise_dps_first_differences": dict(zip(AXES, sigma_diff.tolist(), strict=True)),
         "noise_model": {a: m.to_dict() for a, m in models.items()},
+        "allan_terms": _allan_terms(prob, resid_reg),
         "samples": {"total": len(log), "used": int(usable.index.size), "runs": usable.n_runs,
                     "rate_hz": usable.rate_hz, "sessions": int(np.unique(usable.session).size),
                     "with_reference": usable.with_reference, "block_s": prob.block_s,
@@ -223,6 +225,16 @@ def _evidence(cause: str, axes: list[str], frac: float, params: dict, blocks: in
     }[cause]
     return (f"On axes {', '.join(axes)}, {what} to the baseline removes {frac:.0%} of the held-out "
             f"tau-averaged residual variance over {blocks} held-out time blocks.")
+
+
+def _allan_terms(prob: Problem, resid: np.ndarray) -> dict:
+    """IEEE 952 read-off per axis (model/allan.py): ARW [deg/sqrt(s)], bias instability [deg/s],
+    rate random walk [deg/s/sqrt(s)] with intervals, from the residual of the extended regressions
+    (used samples in time order, gaps closed), as allan_variance_ros / imu_utils users expect."""
+    out = {"series": "residual of the extended regressions, used samples, gaps closed"}
+    for k, a in enumerate(AXES):
+        out[a] = read_noise_terms(allan_curve(resid[:, k], prob.rate_hz)).as_dict()
+    return out
 
 
 def heldout_for(prob: Problem, axis: int, chosen: list[Candidate]) -> np.ndarray:
