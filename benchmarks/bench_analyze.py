@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_analyze.py [--seeds N] [--json OUT.json]
     .venv/bin/python benchmarks/bench_analyze.py --long [--hours 3]      # linear cost: time + peak memory
     .venv/bin/python benchmarks/bench_analyze.py --backgrounds --seeds N  # coloured/flicker/quantised nulls
+    .venv/bin/python benchmarks/bench_analyze.py --map --seeds N --plot map.png  # detection vs size
 
 ``--long``: one 3-hour, 100 Hz still-and-tumble log (3 sessions of 1 h, 1.08 M samples, hidden
 warm-up), analysed end to end through ``gyrocal analyze``; wall time and the process' peak resident
@@ -50,9 +51,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hours", type=float, default=3.0)
     ap.add_argument("--backgrounds", action="store_true", help="false alarms on non-white nulls")
     ap.add_argument("--hard", action="store_true", help="score on the harder hidden set")
+    ap.add_argument("--map", action="store_true", help="detection rate against effect size")
+    ap.add_argument("--sizes", default="0.05,0.1,0.2,0.5,1.0", help="--map sizes [sigma]")
+    ap.add_argument("--plot", help="--map: write the plot here (PNG)")
     args = ap.parse_args(argv)
     if args.hard:
         return _hard(args.json)
+    if args.map:
+        return _map([float(x) for x in args.sizes.split(",")], args.seeds, args.json, args.plot)
     if args.long:
         return _long(args.hours, args.json)
     if args.backgrounds:
@@ -111,6 +117,52 @@ def _long(hours: float, out: str | None) -> int:
     print(json.dumps(fig))
     if out:
         Path(out).write_text(json.dumps(fig, indent=1) + "\n")
+    return 0
+
+
+def _map(sizes: list[float], seeds: int, out: str | None, plot: str | None) -> int:
+    """Detection rate per cause against effect size (sigma = white noise per sample), simulated
+    tumble logs (3 x 180 s at 25 Hz); the false-alarm rate (white nulls, same seeds) beside it."""
+    from gyrocal.analysis.engine import analyze
+    from gyrocal.analysis.hidden import HardCase, generate_hard
+    from gyrocal.logformat import LogData
+
+    causes = ("temperature", "temperature_rate", "warmup", "periodic", "random_walk")
+    table: dict = {c: {} for c in causes}
+    for c in causes:
+        for size in sizes:
+            hit = 0
+            for i in range(seeds):
+                cols, h = generate_hard(HardCase(40_000 + i, [c], size), session_s=180.0, n_sessions=3)
+                res = analyze(LogData(cols, {}, [], "map")).result
+                found = {f["cause"]: f["axes"] for f in res["findings"]}
+                hit += set(h.axes[c]) <= set(found.get(c, []))
+            table[c][size] = hit / seeds
+            print(c, size, hit, "/", seeds, flush=True)
+    alarms = 0
+    for i in range(seeds):
+        cols, _ = generate_hard(HardCase(40_000 + i, [], 0.0), session_s=180.0, n_sessions=3)
+        alarms += bool(analyze(LogData(cols, {}, [], "null")).result["findings"])
+    fig = {"sizes_sigma": sizes, "seeds": seeds, "detection": table, "null_false_alarms": alarms}
+    print(json.dumps(fig))
+    if out:
+        Path(out).write_text(json.dumps(fig, indent=1) + "\n")
+    if plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fg, ax = plt.subplots(figsize=(6, 4))
+        for c in causes:
+            ax.semilogx(sizes, [table[c][s] for s in sizes], marker="o", label=c)
+        ax.axhline(alarms / seeds, color="k", ls="--", label=f"false alarms ({alarms}/{seeds})")
+        ax.set_xlabel("effect size [sigma per sample]")
+        ax.set_ylabel("detection rate (all affected axes)")
+        ax.legend(fontsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+        fg.tight_layout()
+        fg.savefig(plot, dpi=110)
     return 0
 
 
