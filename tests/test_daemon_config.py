@@ -26,7 +26,7 @@ def test_default_and_example_configs_load() -> None:
     [
         ("link: {kind: serial, url: /dev/x, baud: 9600}\n", ["link.baud", "takes kind, url, baudrate"]),
         ("link: {kind: usb, url: /dev/x}\n", ["link.kind", "write `serial` or `can`"]),
-        ("link: {url: /dev/x}\nestimator: {method: kalman}\n", ["estimator.method", "rls, nlms or lms"]),
+        ("link: {url: /dev/x}\nestimator: {method: kalman}\n", ["estimator.method", "rls, nlms, lms or kf"]),
         ("link: {url: /dev/x}\npush: {retries: '3'}\n", ["push.retries", "'3'"]),
         ("link: {url: /dev/x}\nestimator: {terms: [gx, 'gx+gy']}\n", ["estimator.terms", "gx+gy"]),
         ("link: {url: /dev/x}\nvalidation: {min_improvement: 1.5}\n", ["validation.min_improvement"]),

@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from gyrocal.errors import ConfigError
+from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 
@@ -42,7 +43,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "extra_args": ((list,), [], "write a list of extra `gyrocal sim` arguments"),
     },
     "estimator": {
-        "method": ((str,), "rls", "write rls, nlms or lms"),
+        "method": ((str,), "rls", "write rls, nlms, lms or kf"),
         "terms": ((str, list), "seed000", "write `seed000`, a list of term names, or a YAML terms file"),
         "forgetting": ((int, float), 1.0, "write a forgetting factor in (0.9, 1]"),
         "step": ((int, float), 0.5, "write an NLMS/LMS step size in (0, 2)"),
@@ -253,8 +254,10 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
                   "~/.canrc)")
     if link["url"] == "auto" and link["kind"] == "serial" and not s["virtual_unit"]["enabled"]:
         _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
-    if est["method"] not in ("rls", "nlms", "lms"):
-        _fail(name, "estimator.method", est["method"], "write rls, nlms or lms")
+    if est["method"] not in ("rls", "nlms", "lms", "kf"):
+        _fail(name, "estimator.method", est["method"], "write rls, nlms, lms or kf")
+    if est["method"] == "kf":  # the bias intensities come from the terms file analyze wrote
+        load_bias_spec(est["terms"], name)
     if not link["url"].strip():
         _fail(name, "link.url", link["url"], "name the device, e.g. /dev/gyrocal-imu, or write `auto`")
     extra = s["virtual_unit"]["extra_args"]

@@ -36,6 +36,7 @@ import signal
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,8 +82,10 @@ class Reply:
 class Engine(CommandsMixin):
     """Joins one link to sessions, the store, the control socket and systemd."""
 
-    def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None) -> None:
+    def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
+        self.clock = clock  # [s]; `gyrocal replay` runs the loop on the recording's unit time
         self.inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self.ring = RingBuffer(1 << 16)
         self.store = CalibrationStore(cfg.state_dir)
@@ -95,7 +98,7 @@ class Engine(CommandsMixin):
         self.detector = self._new_detector(1000.0)
         self.rate_hz: float | None = None
         self.status: dict[str, Any] = {"state": "STARTING"}
-        self.started = time.monotonic()
+        self.started = clock()
         self.dropped_nonfinite = 0
         self.samples_before_hello = 0
         self.sessions_started = 0
@@ -137,7 +140,7 @@ class Engine(CommandsMixin):
         self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
                               where=f"{self.cfg.source}: link", start=False)
         self.link.start(wait=wait)
-        self._ask_hello(time.monotonic())
+        self._ask_hello(self.clock())
         self.control = ControlServer(self.cfg.control_socket, self._on_command)
         self.control.start()
         log.info("control socket %s; state directory %s", self.cfg.control_socket, self.cfg.state_dir)
@@ -174,7 +177,7 @@ class Engine(CommandsMixin):
     # -- callbacks from other threads ---------------------------------------------------------
     def _on_control(self, msg: Any) -> None:
         # runs on the reader thread in stream order: ring.pushed is how many samples came before msg
-        self.inbox.put(("msg", msg, self.ring.pushed, time.monotonic()))
+        self.inbox.put(("msg", msg, self.ring.pushed, self.clock()))
 
     def _on_event(self, name: str, detail: str = "") -> None:
         self.inbox.put(("event", name, detail))
@@ -193,9 +196,9 @@ class Engine(CommandsMixin):
         """Run the loop until stop(), ``until(engine)`` is true, or ``timeout_s`` passes."""
         interval = self.notifier.watchdog_interval_s() if self.cfg.watchdog else None
         next_ping = 0.0
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        deadline = None if timeout_s is None else self.clock() + timeout_s
         while not self._stop.is_set():
-            now = time.monotonic()
+            now = self.clock()
             n = 0
             for _ in range(8):  # samples and messages in stream order, a bounded amount per round
                 got, more = self._step(now)
@@ -390,7 +393,7 @@ class Engine(CommandsMixin):
         decided, still = self.detector.feed(block)
         self.session.feed(decided, still, now)
         if decided.size:
-            self._record_latency(time.monotonic() - decided["rx"])
+            self._record_latency(self.clock() - decided["rx"])
 
     def _record_latency(self, lat_s: np.ndarray) -> None:
         """Keep the newest latencies: from a sample's arrival (rx) to the weights having learnt it."""

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.methods import make_estimator
 from gyrocal.model.terms import TermSpec
@@ -66,6 +67,8 @@ class Learner:
             kw["prior_dps"] = np.asarray(prior.coefficients_dps, dtype=np.float64)
         if est["method"] in ("lms", "nlms"):
             kw["mu" if est["method"] == "nlms" else "alpha"] = est["step"]
+        if est["method"] == "kf":  # bias states with the intensities analyze wrote (model/bias_kalman.py)
+            kw["bias"] = load_bias_spec(est["terms"], cfg.source)
         self.est = make_estimator(est["method"], self.names, **kw)
         self.full_rank = structural_rank(tuple(self.names))
         self.prior = np.asarray(prior.coefficients_dps, dtype=np.float64) if self.has_prior else None
@@ -74,8 +77,9 @@ class Learner:
         self._sum_res2 = np.zeros(3)
         self._n = 0
 
-    def update_many(self, phi: np.ndarray, raw_dps: np.ndarray) -> None:
-        self.est.update_many(phi, raw_dps)
+    def update_many(self, phi: np.ndarray, raw_dps: np.ndarray, t_s: np.ndarray | None = None) -> None:
+        # only the Kalman filter uses time (its bias states move with dt); the others stay as they were
+        self.est.update_many(phi, raw_dps, t_s if self.est.method == "kf" else None)
         if self.prior is not None:
             res = raw_dps - phi @ self.prior.T
             ok = np.all(np.isfinite(res), axis=1)

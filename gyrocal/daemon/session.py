@@ -219,7 +219,7 @@ class Session(RecoveryMixin):
         blocks, train = self.acc.feed(raw, out, phi, still)
         self.still_samples += int(still.sum())
         if train.any() and self.state is not State.PUSHING:
-            self.learner.update_many(phi[train], raw[train])
+            self.learner.update_many(phi[train], raw[train], samples["t"][train])
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
 

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 LINKS: dict[str, tuple[str, str]] = {
     "serial": ("gyrocal.drivers.serial_link", "SerialLink"),
     "can": ("gyrocal.drivers.can_link", "CanLink"),
+    "replay": ("gyrocal.replay.link", "ReplayLink"),
 }
 """Link kinds -> (module, class), imported on first use."""
 
@@ -70,6 +71,10 @@ def open_link(
     link: Link
     if kind == "serial":
         link = _serial(where, rest, ring, on_control, on_event, common)
+    elif kind == "replay":  # a recording played as the unit (gyrocal/replay/link.py)
+        from gyrocal.replay.link import from_config
+
+        link = from_config(where, rest, ring, on_control, on_event, common)
     else:
         link = _can(where, rest, ring, on_control, on_event, common)
     if start:

@@ -73,9 +73,19 @@ def detect_still(
         # a turn of a few deg/s held for a while; the band is wide against any bias change
         ok &= np.abs(mean - centre) < max(8.0 * quiet, 0.5)
         _, astd = _rolling(np.asarray(columns[f"a{a}"], dtype=float), w)
-        ok &= astd < k_std * max(float(np.quantile(astd, QUIET_QUANTILE)), 1e-6)
+        # floor the quiet level at the accel's quantum: a quantised still axis (CAN: 1 mg) has a
+        # rolling std of exactly 0 in many windows, which would otherwise make nothing still
+        floor = max(1e-6, 0.5 * _quantum(np.asarray(columns[f"a{a}"], dtype=float)))
+        ok &= astd < k_std * max(float(np.quantile(astd, QUIET_QUANTILE)), floor)
     session = np.asarray(columns.get("session", np.zeros(n)))
     return _shrink(ok, session, int(round(margin_s * rate_hz)), int(round(min_run_s * rate_hz)))
+
+
+def _quantum(x: np.ndarray) -> float:
+    """The smallest step between distinct values (the quantisation LSB), from up to 200k samples."""
+    steps = np.diff(np.unique(x[:200_000]))
+    steps = steps[steps > 0]
+    return float(steps.min()) if steps.size else 0.0
 
 
 def _shrink(mask: np.ndarray, session: np.ndarray, margin: int, min_len: int) -> np.ndarray:

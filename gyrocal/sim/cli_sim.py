@@ -29,7 +29,7 @@ from gyrocal.errors import ConfigError
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
 from gyrocal.sim.schedule import load_schedule, tumble
-from gyrocal.sim.truth import TruthModel
+from gyrocal.sim.truth import NOISE_FIELDS, TruthModel, set_noise
 from gyrocal.sim.unit import Faults, VirtualUnit
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--power-cycle-every", type=float, default=0.0, metavar="S",
                    help="power-cycle after S seconds of each session (0 = never)")
     p.add_argument("--status-json", metavar="PATH", help="write the unit's status here (atomic, ~1 s)")
+    p.add_argument("--noise", action="append", metavar="NAME=VALUE",
+                   help=f"sensor noise beyond white, repeatable; NAME one of {', '.join(NOISE_FIELDS)}")
     p.add_argument("--record", metavar="LOG.csv", help="record what was sent (+ LOG.truth.csv)")
     p.add_argument("--flash", metavar="PATH", help="keep boot count and applied set in this JSON file")
     p.add_argument("--pty-link", metavar="PATH", help="symlink PATH to the pty slave (a stable name)")
@@ -168,7 +170,8 @@ def main(args: argparse.Namespace) -> int:
                     cycle_after_ack=args.cycle_after_ack, no_coeff_read=args.no_coeff_read,
                     seq_outlier_every_s=args.seq_outlier_every, silence_at_s=args.silence_at,
                     silence_for_s=args.silence_for)
-    unit = VirtualUnit(TruthModel(), schedule, args.rate, args.seed, args.serial, faults=faults)
+    truth = set_noise(TruthModel(), args.noise)
+    unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
     recorder = None
