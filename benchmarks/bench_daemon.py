@@ -146,9 +146,9 @@ def _final_unit_status(unit: VirtualUnitProcess, timeout_s: float = 5.0) -> dict
 
 def _latency(engine: Engine, rate: float) -> dict[str, Any]:
     lat = engine.latency_percentiles_s()
-    half = engine.detector.half
-    return {**lat, "still_window_samples": engine.detector.cfg.window, "lookahead_samples": half,
-            "lookahead_s": half / rate,
+    ahead_s = engine.detector.lookahead_s
+    return {**lat, "still_window_samples": round(engine.detector.rule.window_s * rate),
+            "lookahead_samples": round(ahead_s * rate), "lookahead_s": ahead_s,
             "session_rate_hz": None if engine.session is None else engine.session.rate_hz,
             "engine_rate_hz": engine.rate_hz,
             "hello_rate_hz": None if engine.last_hello is None else engine.last_hello.rate_hz}
