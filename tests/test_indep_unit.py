@@ -1,0 +1,189 @@
+"""The real daemon against an independent unit written from docs/protocol.md alone (tests/indep/).
+
+Each case starts ``python -m tests.indep.unit`` (its own framing, CAN packing, drift truth, poses
+and temperature) and ``python -m gyrocal.cli run`` as separate processes, waits for the push, and
+checks what the issues promise with the unit's truth: the push is acked, the drift left over the
+unit's poses is >= 10x smaller on every axis, the store and the unit hold the same set, and a
+power cycle gives one new session and a new bias push.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.sim_helpers import MULTICAST_GROUP, free_udp_port, multicast_works, wait_for
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
+WAIT_S = 75.0  # generous bound on the first push; never asserted as a time
+
+
+class Proc:
+    """A child process whose stderr goes to a file under tmp_path."""
+
+    def __init__(self, cmd: list[str], tmp_path: Path, name: str) -> None:
+        self.stderr_path = tmp_path / f"{name}.stderr"
+        self._err = self.stderr_path.open("wb")
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._err, env=ENV, cwd=ROOT)
+
+    def first_line(self, timeout_s: float = 20.0) -> str:
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
+        line = self.proc.stdout.readline().decode().strip() if ready else ""
+        if not line:
+            raise RuntimeError(f"no first line; stderr: {self.stderr_path.read_text()}")
+        return line
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._err.close()
+
+
+class IndepUnit(Proc):
+    """The independent unit; ``truth()`` reads its status JSON."""
+
+    def __init__(self, tmp_path: Path, *args: str) -> None:
+        self.status_path = tmp_path / "unit-status.json"
+        super().__init__([sys.executable, "-m", "tests.indep.unit", "--flash", str(tmp_path / "flash.json"),
+                          "--status", str(self.status_path), *args], tmp_path, "unit")
+        self.address = self.first_line()
+
+    def truth(self) -> dict:
+        try:
+            return json.loads(self.status_path.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+
+    def power_cycle(self) -> None:
+        self.proc.send_signal(signal.SIGUSR1)
+
+
+class Daemon(Proc):
+    """``gyrocal run`` with a config file written per case; ``status()`` asks it over its socket."""
+
+    def __init__(self, tmp_path: Path, link: dict) -> None:
+        self.socket = tmp_path / "ctl.sock"
+        config = {"link": link, "state_dir": str(tmp_path / "state"), "control_socket": str(self.socket),
+                  "watchdog": False}
+        cfg = tmp_path / "gyrocal.yaml"
+        cfg.write_text(json.dumps(config))  # JSON is YAML
+        super().__init__([sys.executable, "-m", "gyrocal.cli", "run", "--config", str(cfg)], tmp_path, "daemon")
+
+    def status(self) -> dict:
+        out = subprocess.run([sys.executable, "-m", "gyrocal.cli", "status", "--json", "--socket",
+                              str(self.socket)], capture_output=True, env=ENV, cwd=ROOT, timeout=20)
+        if out.returncode != 0:
+            return {}
+        try:
+            return json.loads(out.stdout)
+        except json.JSONDecodeError:
+            return {}
+
+    def log(self) -> str:
+        return self.stderr_path.read_text(errors="replace")
+
+
+def _acked(unit: IndepUnit, daemon: Daemon, boot: int) -> bool:
+    acks = [a for a in unit.truth().get("acks", []) if a["boot"] == boot]
+    if not acks:
+        return False
+    st = daemon.status()
+    return (st.get("last_push", {}).get("status") == "acked"
+            and st.get("applied", {}).get("version") == acks[-1]["version"])
+
+
+def _check_push(unit: IndepUnit, daemon: Daemon, boot: int) -> dict:
+    """The push is acked by the unit, cuts its true drift >= 10x per axis, and store == unit."""
+    ok = wait_for(lambda: _acked(unit, daemon, boot), timeout_s=WAIT_S, poll_s=1.0)
+    truth, st = unit.truth(), daemon.status()
+    assert ok, (f"no acked push in boot {boot}: daemon {st.get('state')} {st.get('reason')}; unit acks "
+                f"{truth.get('acks')} naks {truth.get('naks')}\n{daemon.log()[-3000:]}")
+    assert truth["boot"] == boot
+    ack = [a for a in truth["acks"] if a["boot"] == boot][-1]
+    for axis in "xyz":
+        before, after = truth["drift_rms_before"][axis], ack["rms_after"][axis]
+        assert after * 10 <= before, f"axis {axis}: drift {before:.3g} -> {after:.3g} deg/s (< 10x)"
+    assert st["applied"] == {"version": truth["applied"]["version"], "terms_id": truth["applied"]["terms_id"]}
+    assert st["last_push"]["acked_crc"] == truth["applied"]["crc"]
+    assert st["last_push"]["readback_ok"] is True
+    assert st["unit"]["serial"] == truth["serial"] and st["unit"]["boot_count"] == boot
+    assert truth["naks"] == []
+    return st
+
+
+def _check_power_cycle(unit: IndepUnit, daemon: Daemon) -> None:
+    """One new session per power cycle, and a new push for the new turn-on bias."""
+    sessions = daemon.status()["sessions"]
+    unit.power_cycle()
+    assert wait_for(lambda: unit.truth().get("boot") == 2, timeout_s=20, poll_s=0.2)
+    pushed = wait_for(lambda: _acked(unit, daemon, 2), timeout_s=WAIT_S, poll_s=1.0)
+    st = daemon.status()
+    assert st["unit"]["boot_count"] == 2
+    if st["sessions"] != sessions + 1:
+        pytest.xfail(f"daemon bug (issue 9 item 5): one power cycle gave {st['sessions'] - sessions} new "
+                     "sessions ('sample sequence went back' is logged before the HELLO is handled)")
+    if not pushed:
+        pytest.xfail(f"daemon: no push for the new bias after the power cycle: {st.get('reason')}")
+    _check_push(unit, daemon, 2)
+
+
+@pytest.mark.slow
+def test_fibre_grade_pty_400hz_push_and_power_cycle(tmp_path: Path) -> None:
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 1)
+        _check_power_cycle(unit, daemon)
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="daemon (issue 9 item 1): the absolute still threshold "
+                   "(still.gyro_std_dps 0.05) never sees a 0.1 deg/s-per-sample MEMS unit as still")
+def test_mems_grade_pty_1khz_push(tmp_path: Path) -> None:
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "1000", "--grade", "mems", "--noise", "0.1")
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 1)
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("node", [
+    0,
+    pytest.param(3, marks=pytest.mark.xfail(strict=False, reason="daemon (issue 9 item 6): no "
+                                            "link.can_node_id yet, only node 0 is heard")),
+])
+def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
+    port = free_udp_port()
+    if not multicast_works(port):
+        pytest.skip("udp_multicast does not loop back on this host")
+    unit = IndepUnit(tmp_path, "--link", "can", "--node", str(node), "--rate", "400", "--grade", "fibre",
+                     "--can-channel", MULTICAST_GROUP, "--can-port", str(port))
+    link = {"kind": "can", "can": {"interface": "udp_multicast", "channel": MULTICAST_GROUP, "port": port}}
+    if node:
+        link["can_node_id"] = node
+    daemon = Daemon(tmp_path, link)
+    try:
+        _check_push(unit, daemon, 1)
+    finally:
+        daemon.stop()
+        unit.stop()
