@@ -46,7 +46,8 @@ class PtyLink:
         return self.path
 
     def stats(self) -> dict:
-        return {**self.rx.stats.__dict__, "tx_bytes": self.tx_bytes, "tx_dropped_bytes": self.tx_dropped_bytes}
+        return {**self.rx.stats.__dict__, "tx_bytes": self.tx_bytes,
+                "tx_dropped_bytes": self.tx_dropped_bytes}
 
     # --- transmit -------------------------------------------------------------------------------
     def _write(self, data: bytes) -> None:
@@ -273,7 +274,8 @@ class CanLink:
                                               (48, 8, cset.n)]))
         for k in range(len(body) // 4):
             word = int.from_bytes(body[4 * k:4 * k + 4], "little")
-            self._send(F_REPORT_DATA, pack_bits([(0, 16, k), (16, 16, cset.version & 0xFFFF), (32, 32, word)]))
+            self._send(F_REPORT_DATA, pack_bits([(0, 16, k), (16, 16, cset.version & 0xFFFF),
+                                                 (32, 32, word)]))
         self._send(F_REPORT_END, pack_bits([(0, 32, cset.version), (32, 32, cset.crc)]))
 
     def _reader(self) -> None:

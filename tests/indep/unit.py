@@ -79,7 +79,8 @@ class Unit:
         self.anchor_next = True
         self.last_temp = self.temp0
         self.last_dtemp = 0.0
-        self.log["boots"].append({"boot": self.boot, "wall": time.time(), "bias_dps": self.truth.bias.tolist()})
+        self.log["boots"].append({"boot": self.boot, "wall": time.time(),
+                                  "bias_dps": self.truth.bias.tolist()})
         self.link.send_hello(self.args.serial, FIRMWARE, self.boot, self.rate)
 
     def power_cycle(self) -> None:
@@ -108,7 +109,8 @@ class Unit:
         self.write_status()
 
     def _nak(self, version: int, crc: int, reason: int) -> None:
-        self.log["naks"].append({"version": version, "reason": reason, "boot": self.boot, "wall": time.time()})
+        self.log["naks"].append({"version": version, "reason": reason, "boot": self.boot,
+                                 "wall": time.time()})
         self.link.send_nak(version, crc, reason)
 
     def _write(self, cset: CoeffSet) -> None:
@@ -149,7 +151,8 @@ class Unit:
         rate, force = self.schedule.state(t_s)
         temp_true = temperature(t_s, self.temp0)
         g_true = force / np.linalg.norm(force, axis=1, keepdims=True)
-        raw = rate + self.truth.drift(g_true, temp_true) + self.rng.normal(0, self.truth.noise_dps, (count, 3))
+        noise = self.rng.normal(0, self.truth.noise_dps, (count, 3))
+        raw = rate + self.truth.drift(g_true, temp_true) + noise
         lsb = self.link.accel_lsb_g
         accel = np.round((force + self.rng.normal(0, self.truth.accel_noise_g, (count, 3))) / lsb) * lsb
         temp = np.round(temp_true / 0.01) * 0.01  # as sent
