@@ -192,3 +192,31 @@ def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
     finally:
         daemon.stop()
         unit.stop()
+
+
+def test_indep_wire_reproduces_the_docs_worked_examples() -> None:
+    """The emulator's own encoders give the document's example bytes (so a failure above is not ours)."""
+    import numpy as np
+
+    from tests.indep import wire
+    from tests.indep.links import pack_bits
+
+    assert wire.crc32(b"123456789") == 0xCBF43926
+    assert {hex(k) for k in wire.TERM_TABLE} == {"0xf2ff", "0x549e"}
+    sample = wire.frame(wire.SAMPLE, wire.sample_payload(7, 1_500_000, np.array([0.001, -2.5, 100.0]),
+                                                         np.array([0.0, 0.5, -1.0]), 23.45))
+    assert sample.hex() == ("a55a0220000700000060e31600000000"
+                            "00e803000060dad9ff00e1f50500008813f0d82909d2be8c27")
+    hello = wire.frame(wire.HELLO, wire.hello_payload(0x01020304, (1, 2, 3), 17, 2000))
+    assert hello.hex() == "a55a010d000403020101020311000000d007704a340d"
+    ack = wire.frame(wire.COEFF_ACK, bytes.fromhex("050000000df0feca"))
+    assert ack.hex() == "a55a110800050000000df0fecae7a8e8e9"
+    assert wire.frame(wire.COEFF_READ, b"").hex() == "a55a1300003bc421e1"
+    assert wire.CoeffSet.empty().crc == 0x9D6CDF7E
+    t = 1_500_000
+    assert pack_bits([(0, 16, 7), (16, 48, t)]).hex() == "070060e316000000"
+    assert pack_bits([(0, 16, 7), (16, 32, 1000), (48, 16, 2345)]).hex() == "0700e80300002909"
+    assert pack_bits([(0, 4, 7), (4, 4, t >> 16), (8, 32, -2_500_000), (40, 12, 0),
+                      (52, 12, 500)]).hex() == "6760dad9ff00401f"
+    sample_c = pack_bits([(0, 4, 7), (4, 32, 100_000_000), (36, 12, -1000), (48, 16, t)])
+    assert sample_c.hex() == "07105e5f80c160e3"

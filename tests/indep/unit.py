@@ -196,8 +196,9 @@ class Unit:
 
     # --- main loop ------------------------------------------------------------------------------
     def run(self, stop: list[bool]) -> None:
-        self.switch_on()
         print(self.link.describe(), flush=True)
+        time.sleep(self.args.start_delay)  # powered later than its port appears: the host hears HELLO
+        self.switch_on()
         block = max(1, self.rate // 100)  # up to 10 ms of samples between two looks at the host
         while not stop[0]:
             if self.cycle_requested:
@@ -234,6 +235,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--flash", required=True, help="JSON file standing in for the unit's flash")
     p.add_argument("--status", default="", help="status JSON written by the unit (truth)")
     p.add_argument("--off-s", type=float, default=0.5, help="dark time of a power cycle [s]")
+    p.add_argument("--start-delay", type=float, default=0.0,
+                   help="dark time before the first switch-on [s] (the pty exists already)")
     p.add_argument("--busy-next", type=int, default=0, help="answer the next N good writes BUSY")
     p.add_argument("--node", type=int, default=0, choices=range(16))
     p.add_argument("--can-interface", default="udp_multicast")
