@@ -159,6 +159,33 @@ def test_fibre_grade_pty_400hz_push_and_power_cycle(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="host and unit dtemp disagree (doc sec. 6 rule): with a held 0x549E "
+                   "set whose only temperature coefficient is dtemp, the daemon converged in 116 s "
+                   "(46 s with temp/temp^2 instead) and its push cut the drift only 8.1x/8.1x/12.4x "
+                   "(158x/46x/89x with temp/temp^2); see the hind report")
+def test_held_temperature_rate_set_is_reconstructed(tmp_path: Path) -> None:
+    """The unit comes with a factory set on terms 0x549E (dtemp in it); the daemon must add it back
+    exactly (``out + C_applied @ terms``, doc sec. 6) before it learns, or the first push is poor."""
+    import numpy as np
+
+    from tests.indep.wire import CoeffSet
+
+    coeffs = np.zeros((3, 14))
+    coeffs[:, 0] = 0.01
+    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
+    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
+    factory = CoeffSet(7, 0x549E, coeffs)
+    (tmp_path / "flash.json").write_text(json.dumps({"boot": 4, "set": factory.encode().hex()}))
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 5)
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+@pytest.mark.slow
 @pytest.mark.xfail(strict=False, reason="daemon (issue 9 item 1): the absolute still threshold "
                    "(still.gyro_std_dps 0.05) never sees a 0.1 deg/s-per-sample MEMS unit as still")
 def test_mems_grade_pty_1khz_push(tmp_path: Path) -> None:

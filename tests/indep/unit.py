@@ -73,7 +73,7 @@ class Unit:
         self.truth.new_bias(self.args.grade, rng)
         self.schedule = PoseSchedule(seed)
         self.temp0 = float(rng.uniform(18.0, 28.0))
-        self.temp_rule = TempRateRule()
+        self.temp_rule = TempRateRule(self.args.dtemp_lag_s)
         self.seq = 0
         self.t_on = time.monotonic()
         self.anchor_next = True
@@ -237,6 +237,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--off-s", type=float, default=0.5, help="dark time of a power cycle [s]")
     p.add_argument("--start-delay", type=float, default=0.0,
                    help="dark time before the first switch-on [s] (the pty exists already)")
+    p.add_argument("--dtemp-lag-s", type=int, default=0,
+                   help="diagnostic: apply the dtemp of N whole seconds earlier than doc sec. 6 says")
     p.add_argument("--busy-next", type=int, default=0, help="answer the next N good writes BUSY")
     p.add_argument("--node", type=int, default=0, choices=range(16))
     p.add_argument("--can-interface", default="udp_multicast")

@@ -149,7 +149,9 @@ class TempRateRule:
     is taken against the mid-second time floor(t) + 0.5; dtemp is 0 until three means exist.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, lag_s: int = 0) -> None:
+        self.lag_s = lag_s  # diagnostic only: use the slope of lag_s whole seconds earlier
+        self.history: list[float] = [0.0]
         self.second: int | None = None
         self.acc = 0.0
         self.count = 0
@@ -167,9 +169,10 @@ class TempRateRule:
                 y = np.array([m[1] for m in self.means])
                 xc = x - x.mean()
                 self.value = float(np.dot(xc, y - y.mean()) / np.dot(xc, xc))
+            self.history = [*self.history[-(self.lag_s + 1):], self.value]
             self.acc, self.count = 0.0, 0
         self.second = sec
-        used = self.value
+        used = self.history[-1 - self.lag_s] if len(self.history) > self.lag_s else 0.0
         self.acc += temp
         self.count += 1
         return used
