@@ -59,15 +59,42 @@ def test_run_with_a_broken_config_prints_one_line_and_exits_2(tmp_path: Path, ca
     assert "no such config file" in capsys.readouterr().err
 
 
-def test_run_with_an_unknown_port_says_so_in_one_line(tmp_path: Path, capsys) -> None:
+def test_run_with_an_unknown_port_starts_waiting_and_says_so_in_one_line(tmp_path: Path) -> None:
+    # issue 8: the daemon starts without the unit (under systemd an exit would be a restart loop);
+    # the missing port is named in one log line and in status (WAIT_UNIT), then it keeps trying
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from gyrocal.daemon.control import request
+
     path = tmp_path / "c.yaml"
+    sock = tmp_path / "c.sock"
     path.write_text(f"link: {{url: /dev/does-not-exist-42}}\nstate_dir: {tmp_path}/s\n"
-                    f"control_socket: {tmp_path}/c.sock\n")
-    assert main(["run", "--config", str(path)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()  # the daemon's log lines are on stderr too
-    fatal = [ln for ln in err if "error:" in ln]
-    assert len(fatal) == 1 and fatal[0].startswith("gyrocal: error:") and "/dev/does-not-exist-42" in fatal[0]
-    assert err[-1] == fatal[0]
+                    f"control_socket: {sock}\n")
+    log = tmp_path / "daemon.log"
+    with log.open("w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "gyrocal.cli", "run", "--config", str(path)],
+                                stdout=out, stderr=subprocess.STDOUT)
+    try:
+        st: dict = {}
+        end = time.monotonic() + 60
+        while time.monotonic() < end and st.get("state") != "WAIT_UNIT":
+            time.sleep(0.2)
+            try:
+                st = request(sock, {"cmd": "status"}, timeout=5.0)
+            except Exception:
+                st = {}
+        assert st.get("state") == "WAIT_UNIT" and "/dev/does-not-exist-42" in st["reason"], st
+        time.sleep(2.5)  # several reconnect rounds: still one line
+        lines = [ln for ln in log.read_text().splitlines()
+                 if "does-not-exist-42" in ln and "cannot be opened" in ln]
+        assert len(lines) == 1, lines
+        assert proc.poll() is None
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
 
 
 # --- ranges: every numeric field, at start and at SIGHUP reload -----------------------------------

@@ -109,7 +109,7 @@ def test_unit_faults_nak_next_then_drop_acks_then_normal() -> None:
     u.faults.drop_acks = 1
     assert u.handle(_true_write(4)) == [] and u.status()["applied_version"] == 3
     assert isinstance(u.handle(_true_write(4))[0], CoeffAck)
-    assert u.status()["writes"] == {"acked": 2, "naked": 2, "dropped": 1}
+    assert u.status()["writes"] == {"acked": 2, "naked": 2, "dropped": 1, "acks_lost": 0}
 
 
 def test_unit_answers_hello_request_with_the_current_boot() -> None:

@@ -47,7 +47,9 @@ def main(args: argparse.Namespace) -> int:
         engine = Engine(cfg, link_cfg)
         engine.install_signals()
         try:
-            engine.open()
+            # wait=False: the daemon starts without the unit (READY, watchdog, "waiting for the unit")
+            # and the link's reader thread connects when the device appears
+            engine.open(wait=False)
             engine.run()
         finally:
             engine.close()

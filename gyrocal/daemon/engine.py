@@ -15,6 +15,16 @@ Threads and ownership (the one place this is written down):
 
 Shared mutable state is therefore limited to the ring buffer (single producer, single consumer) and
 two thread-safe queues. A stuck engine loop stops pinging the watchdog and systemd restarts it.
+
+Containment (issue 8): the loop never exits on a fault. Every handler (a sample block, a unit
+message, a link event, a command, a tick, a reload) runs inside ``_contain``: an exception is
+logged once per kind (then every 1000th) and counted in ``status.loop_errors``; the loop goes on.
+The link is opened with ``wait=False`` by ``gyrocal run``: the daemon starts, sends READY and feeds
+the watchdog without the unit, says "waiting for the unit" (state WAIT_UNIT), and the reader thread
+connects when the device appears. Stream order is exact: samples are popped up to the ring index
+at which the next unit message arrived, so a HELLO splits the samples of two switch-ons exactly.
+Liveness: the age of the newest sample is in status; after ``SILENT_AFTER_S`` without one the
+state is UNIT_SILENT (one log line on the transition, one on recovery, and in systemd's STATUS=).
 """
 
 from __future__ import annotations
@@ -31,18 +41,33 @@ from typing import Any
 
 import numpy as np
 
-from gyrocal.daemon.config import DaemonConfig, load_config
+from gyrocal.daemon.commands import CommandsMixin
+from gyrocal.daemon.config import DaemonConfig
 from gyrocal.daemon.control import ControlServer
 from gyrocal.daemon.learner import make_learner
 from gyrocal.daemon.notify import Notifier
+from gyrocal.daemon.reconcile import close_abandoned
+from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
-from gyrocal.daemon.session import Session, State
+from gyrocal.daemon.session import Session
 from gyrocal.daemon.stillness import StillConfig, StillDetector
-from gyrocal.daemon.store import CalibrationRecord, CalibrationStore
+from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
 
 log = logging.getLogger("gyrocal.engine")
+
+SILENT_AFTER_S = 2.0
+"""No sample for this long [s] on a connected link: the unit is silent (vanished, stalled, or a
+CAN bus on which it no longer sends). A unit at >= 10 Hz sends 20 samples in that time."""
+
+RECONNECT_MAX_S = 1.0
+"""Cap on the link's reconnect back-off [s] (the config's ``link.reconnect_max_s`` may only lower it):
+recovery after the unit returns must take at most ~2 s on every transport."""
+
+ADOPT_WINDOW_S = 5.0
+"""A HELLO this soon [s] after the sample sequence already showed a restart confirms that restart:
+it names the session's boot, it does not start a second one."""
 
 
 @dataclass
@@ -53,7 +78,7 @@ class Reply:
     value: dict[str, Any] = field(default_factory=dict)
 
 
-class Engine:
+class Engine(CommandsMixin):
     """Joins one link to sessions, the store, the control socket and systemd."""
 
     def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None) -> None:
@@ -76,13 +101,18 @@ class Engine:
         self.sessions_started = 0
         self.push_results: list[dict[str, Any]] = []
         self._stop = threading.Event()
-        self._last_seq: int | None = None
+        self.seq = SeqTracker()
+        self.loop_errors = 0
+        self._error_counts: dict[str, int] = {}
+        self._last_sample_at: float | None = None  # host monotonic time of the newest sample [s]
+        self._silent = False
+        self._seq_session_at: float | None = None  # when a session was started by the seq alone
+        self._link_state = "not opened"
+        self._pending: list[tuple[Any, ...]] = []  # inbox items not handled yet, in arrival order
         self._last_status_line = ""
         self._next_hello_request = 0.0
         self._next_publish = 0.0
-        self._popped_total = 0  # samples popped from the ring since start (the ring's own count)
         self._seq_hist: deque[tuple[int, np.ndarray]] = deque(maxlen=8)
-        self._held: list[tuple[Any, ...]] = []  # unit messages waiting for their preceding samples
         # sample-to-weights latency [s]: a fixed-size reservoir of the newest values (O(1) memory)
         self._lat = np.full(1 << 14, np.nan)
         self._lat_i = 0
@@ -96,13 +126,14 @@ class Engine:
     def _driver_cfg(self) -> dict[str, Any]:
         """The drivers' config mapping from the daemon's ``link`` section."""
         c = self.link_cfg
-        backoff = {"backoff_max_s": float(c.get("reconnect_max_s", 5.0))}
+        backoff = {"backoff_max_s": min(float(c.get("reconnect_max_s", RECONNECT_MAX_S)), RECONNECT_MAX_S)}
         if c["kind"] == "can":
             return {"kind": "can", "bus": dict(c["can"]), **backoff}
         return {"kind": "serial", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **backoff}
 
     def open(self, wait: bool = True) -> None:
-        """Open the link (``wait=False``: keep retrying in the background if the device is absent)."""
+        """Open the link (``wait=False``: start without the unit; the reader thread keeps trying)."""
+        self._tidy_store()
         self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
                               where=f"{self.cfg.source}: link", start=False)
         self.link.start(wait=wait)
@@ -111,7 +142,17 @@ class Engine:
         self.control.start()
         log.info("control socket %s; state directory %s", self.cfg.control_socket, self.cfg.state_dir)
         self.notifier.ready()
-        self.notifier.status("waiting for the unit's HELLO")
+        self.notifier.status("waiting for the unit" if not self.link.connected
+                             else "waiting for the unit's HELLO")
+
+    def _tidy_store(self) -> None:
+        """At start (the only writer now): remove temporaries of interrupted writes, close abandoned
+        pushes. A store that cannot be written is reported, never fatal (the session retries)."""
+        try:
+            self.store.clean_leftovers()
+            close_abandoned(self.store)
+        except Exception as err:
+            log.error("calibration store: start-up tidy failed: %s", err)
 
     def close(self) -> None:
         self.notifier.stopping()
@@ -133,7 +174,7 @@ class Engine:
     # -- callbacks from other threads ---------------------------------------------------------
     def _on_control(self, msg: Any) -> None:
         # runs on the reader thread in stream order: ring.pushed is how many samples came before msg
-        self.inbox.put(("msg", msg, self.ring.pushed))
+        self.inbox.put(("msg", msg, self.ring.pushed, time.monotonic()))
 
     def _on_event(self, name: str, detail: str = "") -> None:
         self.inbox.put(("event", name, detail))
@@ -155,18 +196,15 @@ class Engine:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while not self._stop.is_set():
             now = time.monotonic()
-            block = self.ring.pop(8192)
-            if block.size:
-                self._seq_hist.append((self._popped_total, block["seq"].copy()))
-                self._popped_total += block.size
-                self._on_samples(block, now)
-            self._drain_inbox(now)
-            if self.session is not None:
-                self.session.tick(now)
-            elif now >= self._next_hello_request and self.ring.pushed:
-                self._ask_hello(now)
+            n = 0
+            for _ in range(8):  # samples and messages in stream order, a bounded amount per round
+                got, more = self._step(now)
+                n += got
+                if not more:
+                    break
+            self._contain("tick", self._tick, now)
             if now >= self._next_publish:
-                self._publish(now)
+                self._contain("status", self._publish, now)
                 self._next_publish = now + 0.2
             if interval is not None and now >= next_ping:
                 self.notifier.watchdog()
@@ -175,8 +213,48 @@ class Engine:
                 break
             if deadline is not None and now > deadline:
                 break
-            if block.size < 64:
+            if n < 64:
                 time.sleep(0.002)
+
+    def _contain(self, where: str, fn: Any, *args: Any) -> Any:
+        """Run one handler; an exception is logged (once per kind, then every 1000th) and counted."""
+        try:
+            return fn(*args)
+        except Exception as err:
+            self.loop_errors += 1
+            key = f"{where}:{type(err).__name__}"
+            k = self._error_counts[key] = self._error_counts.get(key, 0) + 1
+            if k == 1 or k % 1000 == 0:
+                log.error("%s failed (%d time(s)); the daemon carries on: %s", where, k, err,
+                          exc_info=k == 1)
+            return None
+
+    def _tick(self, now: float) -> None:
+        if self.session is not None:
+            self.session.tick(now)
+        elif now >= self._next_hello_request and self.ring.pushed:
+            self._ask_hello(now)
+
+    def _step(self, now: float) -> tuple[int, bool]:
+        """Pop samples up to the next unit message's place in the stream, then handle the messages
+        that are due. Returns (samples handled, whether there may be more to do now)."""
+        while True:
+            try:
+                self._pending.append(self.inbox.get_nowait())
+            except queue.Empty:
+                break
+        limit = 8192
+        for item in self._pending:
+            if item[0] == "msg":  # samples before it first (0.5 s at most: a lost sample never comes)
+                if now - item[3] < 0.5:
+                    limit = max(0, min(limit, item[2] - self.ring.position))
+                break
+        block = self.ring.pop(limit) if limit else self.ring.pop(0)
+        if block.size:
+            self._seq_hist.append((self.ring.position - block.size, block["seq"].copy()))
+            self._contain("samples", self._on_samples, block, now)
+        handled = self._drain(now)
+        return block.size, bool(block.size >= limit > 0 or handled)
 
     def _seq_at(self, index: int) -> int | None:
         """The seq of the sample with this ring index (counted from the engine's start), if recent."""
@@ -185,38 +263,33 @@ class Engine:
                 return int(seq[index - start])
         return None
 
-    def _drain_inbox(self, now: float) -> None:
-        """Handle what the other threads posted; a unit message waits until the samples that came
-        before it on the wire have been popped, so messages and samples are handled in stream order."""
-        pending, self._held = self._held, []
-        while True:
-            if pending:
-                item = pending.pop(0)  # held messages first, in their order
-            else:
-                try:
-                    item = self.inbox.get_nowait()
-                except queue.Empty:
-                    return
+    def _drain(self, now: float) -> bool:
+        """Handle pending items in order; a unit message waits (0.5 s at most) until the samples that
+        came before it on the wire are popped, and every later item waits behind it."""
+        handled = False
+        while self._pending:
+            item = self._pending[0]
             kind = item[0]
             if kind == "msg":
-                _, msg, before, *seen = item
-                first_seen = seen[0] if seen else now
-                # hold it while the samples before it are in flight (0.5 s at most), and hold every
-                # later message behind it, so the unit's messages keep their order
-                if self._held or (before > self._popped_total and now - first_seen < 0.5):
-                    self._held.append(("msg", msg, before, first_seen))
-                    continue
+                _, msg, before, first_seen = item
+                if before > self.ring.position and now - first_seen < 0.5:
+                    return handled
                 last_seq = self._seq_at(before - 1) if before > 0 else None
-                self._on_message(msg, now, last_seq)
+                self._contain(f"message {type(msg).__name__}", self._on_message, msg, now, last_seq)
             elif kind == "event":
-                self._on_link_event(item[1], item[2], now)
+                self._contain(f"link event {item[1]}", self._on_link_event, item[1], item[2], now)
             elif kind == "cmd":
-                value = self._command(item[1], now)
+                value = self._contain(f"command {item[1].get('cmd')!r}", self._command, item[1], now)
+                if value is None:
+                    value = {"ok": False, "error": "the command failed inside the daemon; see its log"}
                 if item[2] is not None:
                     item[2].value = value
                     item[2].event.set()
             elif kind == "reload":
-                self._reload()
+                self._contain("reload", self._reload)
+            self._pending.pop(0)
+            handled = True
+        return handled
 
     def _ask_hello(self, now: float) -> None:
         """Ask the unit to announce itself (HELLO_REQUEST): it switched on before we listened."""
@@ -234,32 +307,55 @@ class Engine:
                 log.info("HELLO from unit %d again (boot %d): same switch-on, session continues",
                          msg.serial, msg.boot_count)
                 return
+            self.last_hello = msg
+            if (s is not None and s.hello.serial == msg.serial and self._seq_session_at is not None
+                    and now - self._seq_session_at < ADOPT_WINDOW_S):
+                # the sample sequence already showed this restart and started its session
+                log.info("HELLO from unit %d (boot %d) confirms the restart seen in the samples: "
+                         "same session",
+                         msg.serial, msg.boot_count)
+                s.hello = msg
+                self._seq_session_at = None
+                return
             log.info("HELLO from unit %d (firmware %s, boot %d): switch-on, new session",
                      msg.serial, msg.fw_version, msg.boot_count)
-            self.last_hello = msg
             self._start_session(msg, now)
+            held = self.seq.expect_restart()  # the next jump in the numbering is this switch-on's
+            if held is not None:
+                self._feed(held, now)
             return
         if self.session is not None:
             self.session.on_message(msg, now, last_seq)
 
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
+        if name == "reconnecting":  # every back-off round: one line when the state changes only
+            first = self._link_state != "reconnecting"
+            log.log(logging.WARNING if first else logging.DEBUG, "waiting for the unit: %s", detail)
+            self._link_state = name
+            return
         log.log(logging.INFO if name == "link_up" else logging.WARNING, "link %s %s", name, detail)
+        self._link_state = name
         if name == "link_up":
             # the unit may have kept running or rebooted: ask who it is (a new boot count starts a
             # new session) and re-read the set it holds
             self._ask_hello(now)
             if self.session is not None:
-                self.session.applied = None
-                self.session.request_read(now)
+                self.session.relink(now)
 
     def _start_session(self, hello: Hello, now: float) -> None:
+        old = self.session
+        if old is not None:
+            old.close(f"a new session started (boot {hello.boot_count})", now)
         prior = self.store.latest(hello.serial, acked_only=True)
         learner = make_learner(self.cfg, prior)
         rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
         self.detector = self._new_detector(rate)
+        self._seq_session_at = None
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version)
         self.sessions_started += 1
+        if old is not None:  # push results the store could not take yet: carried over, not lost
+            self.session.unrecorded.extend(old.unrecorded)
         if prior is not None:
             log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
 
@@ -271,15 +367,23 @@ class Engine:
             block = block[finite]
             if block.size == 0:
                 return
+        self._last_sample_at = now
+        if self._silent:
+            self._silent = False
+            log.info("unit samples again after a silence")
+        for kind, part in self.seq.feed(block):
+            if kind == "restart" and self.last_hello is not None:
+                log.warning("sample sequence went back to %d for %d samples in a row: the unit restarted",
+                            int(part["seq"][0]), part.size)
+                self._start_session(self.last_hello, now)
+                self._seq_session_at = now
+            self._feed(part, now)
+
+    def _feed(self, block: np.ndarray, now: float) -> None:
         if block.size > 8:
             dt = np.median(np.diff(block["t"]))
             if dt > 0:
                 self.rate_hz = 1.0 / dt
-        seq = block["seq"].astype(np.int64)
-        if self._last_seq is not None and seq[0] + 1000 < self._last_seq and self.last_hello is not None:
-            log.warning("sample sequence went back (%d -> %d): the unit restarted", self._last_seq, seq[0])
-            self._start_session(self.last_hello, now)
-        self._last_seq = int(seq[-1])
         if self.session is None:
             self.samples_before_hello += block.size
             return
@@ -303,76 +407,24 @@ class Engine:
         p50, p99 = np.percentile(v, [50, 99])
         return {"p50": float(p50), "p99": float(p99), "max": float(v.max()), "n": int(v.size)}
 
-    # -- commands -----------------------------------------------------------------------------
-    def _command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
-        cmd = req.get("cmd")
-        try:
-            if cmd == "recalibrate":
-                if self.last_hello is None:
-                    return {"ok": False, "error": "no unit has announced itself (HELLO) yet"}
-                self._start_session(self.last_hello, now)
-                return {"ok": True, "message": "new calibration session started"}
-            if cmd in ("rollback", "push"):
-                return self._push_command(req, now)
-        except Exception as err:  # a bad command must not stop the loop
-            log.exception("command %r failed", cmd)
-            return {"ok": False, "error": str(err)}
-        return {"ok": False, "error": f"unknown command {cmd!r}; use status, recalibrate, rollback, push"}
-
-    def _push_command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
-        s = self.session
-        if s is None:
-            return {"ok": False, "error": "no unit session yet; wait for the unit's HELLO"}
-        if s.state is State.PUSHING:
-            return {"ok": False, "error": "a push is already under way; try again in a few seconds"}
-        serial = s.hello.serial
-        if req["cmd"] == "rollback":
-            target = req.get("to")
-            history = [r for r in self.store.history(serial) if r.push.get("status") == "acked"]
-            if target is None:
-                current = s.applied.version if s.applied is not None else None
-                older = [r for r in history if current is None or r.version < current]
-                if not older:
-                    return {"ok": False, "error": "no earlier acked calibration to roll back to"}
-                rec = older[-1]
-            else:
-                rec = self.store.get(serial, int(target))
-                if rec is None:
-                    return {"ok": False, "error": f"unit {serial} has no calibration v{target}"}
-            s.start_push(rec.version, list(rec.terms), np.asarray(rec.coefficients_dps), now)
-            return {"ok": True, "message": f"pushing v{rec.version}", "version": rec.version}
-        terms = [str(t) for t in req["terms"]]
-        coeffs = np.asarray(req["coefficients"], dtype=np.float64)
-        if coeffs.shape != (3, len(terms)) or not np.all(np.isfinite(coeffs)):
-            return {"ok": False, "error": f"coefficients must be 3 finite rows of {len(terms)} numbers"}
-        rec = self.store.add(CalibrationRecord(
-            serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
-            uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
-            session={"boot_count": s.hello.boot_count}, push={"status": "pending"}))
-        s.start_push(rec.version, terms, coeffs, now)
-        return {"ok": True, "message": f"pushing v{rec.version}", "version": rec.version}
-
-    def _reload(self) -> None:
-        self.notifier.reloading()
-        if self.cfg.source.startswith("<"):
-            log.info("SIGHUP: no config file to reload")
-        else:
-            try:
-                new = load_config(self.cfg.source)
-            except Exception as err:  # a broken edit must not kill a running daemon
-                log.error("SIGHUP: config not reloaded: %s", err)
-            else:
-                if new.link != self.cfg.link:
-                    log.warning("SIGHUP: link settings changed; they take effect at the next restart")
-                for section in ("validation", "push", "monitor", "still", "estimator"):
-                    setattr(self.cfg, section, getattr(new, section))
-                log.info("SIGHUP: configuration reloaded from %s", self.cfg.source)
-        self.notifier.ready()
-
     # -- status -------------------------------------------------------------------------------
+    def _store_view(self, serial: int) -> dict[str, Any]:
+        """What the store says about this unit: its newest set the unit verifiably held, and pushes
+        that have not ended (beside the session's ``unit_set``: what the unit holds, and whether the
+        two agree)."""
+        try:
+            recs = self.store.history(serial)
+        except Exception as err:
+            return {"error": str(err)}
+        applied = [r.version for r in recs if r.push.get("status") in APPLIED_STATUSES]
+        return {"versions": len(recs), "latest_applied": applied[-1] if applied else None,
+                "pending": [r.version for r in recs if r.push.get("status") == "pending"]}
+
     def _publish(self, now: float) -> None:
         link_stats = self.link.stats() if self.link is not None else {}
         ring = {"pushed": self.ring.pushed, "popped": self.ring.popped, "lost": self.ring.lost}
+        connected = bool(link_stats.get("connected"))
+        age = None if self._last_sample_at is None else now - self._last_sample_at
         if self.session is None:
             waiting = ("waiting for the unit's HELLO: no frame received yet" if not link_stats.get("frames")
                        else f"waiting for the unit's HELLO: {self.samples_before_hello} samples received "
@@ -380,8 +432,31 @@ class Engine:
             status = {"state": "WAIT_HELLO", "reason": waiting}
         else:
             status = self.session.status()
+            status["store_view"] = self._store_view(self.session.hello.serial)
+        silent = connected and age is not None and age > SILENT_AFTER_S
+        if not connected or (age is None and self.session is None and not link_stats.get("frames")):
+            status["session_state"] = status["state"]
+            status["state"] = "WAIT_UNIT"
+            status["reason"] = (f"waiting for the unit: link to {link_stats.get('target', '?')} is down"
+                                if not connected else
+                                f"waiting for the unit: {link_stats.get('target', '?')} is open, "
+                                "nothing heard yet")
+        elif silent:
+            status["session_state"] = status["state"]
+            status["state"] = "UNIT_SILENT"
+            status["reason"] = (f"unit silent: no sample for {age:.1f} s" if age is not None
+                                else "unit silent: connected, but no sample yet")
+        if silent != self._silent:
+            if silent:
+                log.warning("%s", status["reason"])
+            self._silent = silent
         status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
                        "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
+                       "liveness": {"sample_age_s": None if age is None else round(age, 3),
+                                    "silent": silent, "silent_after_s": SILENT_AFTER_S},
+                       "sequence": {"outliers": self.seq.outliers, "restarts": self.seq.restarts,
+                                    "gaps": self.seq.gaps, "held": self.seq.pending},
+                       "loop_errors": self.loop_errors,
                        "sessions": self.sessions_started, "config": self.cfg.source,
                        "rate_hz": self.rate_hz, "latency_s": self.latency_percentiles_s()})
         self.status = status

@@ -134,6 +134,11 @@ class RingBuffer:
         return self._tail - self._lost
 
     @property
+    def position(self) -> int:
+        """Index (in push order) of the next sample ``pop`` will return: popped plus lost."""
+        return self._tail
+
+    @property
     def lost(self) -> int:
         """Samples overwritten before the consumer read them (including those not yet noticed)."""
         return self._lost + max(0, self._head - self._tail - self.capacity)

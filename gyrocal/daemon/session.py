@@ -14,6 +14,31 @@ as ``raw = out + C_applied @ phi`` before learning: the estimator always learns 
 drift, and a new set replaces the old one rather than stacking on it. The applied set is read from
 the unit (COEFF_READ) at the start of every session, never assumed.
 
+Recovery rules (issue 8: a fault becomes a state, a record and one log line; never an exit, never a
+stuck state):
+
+- Reading the unit's set (COEFF_READ, at the start, after a reconnect, after a failed push): asked
+  again with a back-off that doubles from ``push.ack_timeout_s`` to ``READ_BACKOFF_MAX_S``; after
+  ``READ_WARN_AFTER`` unanswered asks, one WARNING. Until a valid report comes, the session counts
+  samples but does not learn (raw = out + applied set needs the applied set), and status says so.
+- A refused report (NaN/Inf, absurd values, a term set this daemon does not know; push.check_report)
+  is counted (``refused_reports``), logged once, and asked for again with the same back-off.
+- PUSHING always ends: push.py's transaction times out into a result (acked, nak, timeout,
+  link_down, readback_*). A push refused before it starts (push.check_set, a link that is down)
+  never enters PUSHING: the record gets push status 'refused' with the reason, the session stays
+  where it was. After any failed push the unit's set is read back (the unit applies a set whole or
+  not at all), and the reconciliation (reconcile.py) decides what the unit holds.
+- A transient failure (BUSY, no ack, link down, no read-back) is retried as the SAME record (same
+  version, same coefficients) after a back-off of ``RETRY_BACKOFF_S`` doubling to
+  ``RETRY_BACKOFF_MAX_S``: a NAK storm never mints new versions. A final NAK (unknown terms, out of
+  range) drops the set; the next validation may propose a new one.
+- Store failures (disk full, read-only): a validated set that cannot be recorded is NOT pushed
+  (never a unit set the store does not know); status says "store unavailable: <reason>", and the
+  validation is tried again after ``STORE_RETRY_S``. A push result that cannot be written is kept
+  in memory and written at the next chance (``unrecorded``).
+- Every send goes through ``_send``: a link failure is counted and logged once per outage, and the
+  state's own timeout takes it from there.
+
 Pure logic: the engine owns threads and I/O, and hands in ``send``, ``now`` and the store.
 """
 
@@ -30,11 +55,12 @@ import numpy as np
 
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.learner import Learner
-from gyrocal.daemon.push import PushPhase, PushTransaction
+from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
+from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
-from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello
+from gyrocal.protocol.messages import CoeffReport, CoeffWrite, Hello
 from gyrocal.protocol.termsets import names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
@@ -79,7 +105,7 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
     return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
 
 
-class Session:
+class Session(RecoveryMixin):
     """The state machine of one switch-on. See the module docstring."""
 
     CHECK_EVERY_S = 0.25
@@ -121,13 +147,19 @@ class Session:
         self._next_check = now
         self._next_validation_at = 0
         self._read_deadline = now
+        self._read_asks = 0
+        self.refused_reports = 0
+        self.send_failures = 0
+        self._link_warned = False
+        self.store_error: str | None = None
+        self._store_retry_at = 0.0
+        self.unrecorded: list[tuple[int, dict[str, Any]]] = []  # push results the store could not take
+        self.agreement: dict[str, Any] = {}
+        self._retry: dict[str, Any] | None = None  # a transiently failed push to send again, same version
+        self._retry_round = 0
         self.request_read(now)
 
     # -- messages from the unit -------------------------------------------------------------
-    def request_read(self, now: float) -> None:
-        self._read_deadline = now + self.cfg.push["ack_timeout_s"]
-        self.send(CoeffRead())
-
     def on_message(self, msg: Any, now: float, last_seq: int | None = None) -> None:
         """A unit message; ``last_seq`` is the seq of the sample just before it on the wire."""
         if self.push is not None:
@@ -141,12 +173,30 @@ class Session:
                 self._after_push(now)
                 return
         if isinstance(msg, CoeffReport):
-            applied = AppliedSet.from_report(msg)
+            self.on_report(msg, now)
+
+    def on_report(self, msg: CoeffReport, now: float) -> None:
+        """The unit's set: checked, reconciled with the store, then the base of learning."""
+        why = check_report(msg)
+        if why is not None:
+            self.refused_reports += 1
+            if self.refused_reports == 1 or self.refused_reports % 100 == 0:
+                log.warning("unit %s: COEFF_REPORT v%d refused (%s; %d so far); asking again",
+                            self.hello.serial, msg.version, why, self.refused_reports)
             if self.applied is None:
-                log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
-                         applied.version, applied.terms_id)
-                self.reason = "collecting still samples"
-            self.applied = applied
+                self.reason = f"the unit's set cannot be used ({why}); asking again, not learning meanwhile"
+            return
+        applied = AppliedSet.from_report(msg)
+        if self.applied is None:
+            log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
+                     applied.version, applied.terms_id)
+            self.reason = "collecting still samples"
+        self.applied = applied
+        self._read_asks = 0
+        self._reconcile(msg)
+        if self._retry is not None and self.agreement.get("agree") and msg.version == self._retry["version"]:
+            log.info("unit %s already holds v%d: no retry needed", self.hello.serial, msg.version)
+            self._retry = None
 
     # -- samples ------------------------------------------------------------------------------
     def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
@@ -203,15 +253,29 @@ class Session:
 
     # -- time ---------------------------------------------------------------------------------
     def tick(self, now: float) -> None:
-        if self.applied is None:
-            if now >= self._read_deadline:
-                log.warning("unit %s did not answer COEFF_READ; asking again", self.hello.serial)
-                self.request_read(now)
-            return
+        if self.unrecorded and now >= self._store_retry_at:
+            self._flush_unrecorded(now)
         if self.push is not None:
             self.push.tick(now)
             if self.push.finished:
                 self._after_push(now)
+            return
+        if self.applied is None:
+            if now >= self._read_deadline:
+                if self._read_asks == self.READ_WARN_AFTER:
+                    log.warning("unit %s has not answered %d COEFF_READs: counting samples but not learning "
+                                "(learning needs the set the unit applies); asking again, less often",
+                                self.hello.serial, self._read_asks)
+                if self._read_asks >= self.READ_WARN_AFTER and not self.refused_reports:
+                    self.reason = (f"the unit does not answer COEFF_READ ({self._read_asks} asks): counting "
+                                   "samples, not learning; is it a listen-only replay or a unit without "
+                                   "COEFF_READ support?")
+                self.request_read(now)
+            return
+        if self._retry is not None and now >= self._retry["at"]:
+            r, self._retry = self._retry, None
+            log.info("unit %s: pushing v%d again (round %d)", self.hello.serial, r["version"], r["round"])
+            self.start_push(r["version"], r["names"], r["coeffs"], now, retry_round=r["round"])
             return
         if now < self._next_check:
             return
@@ -270,8 +334,31 @@ class Session:
                 self.state, self.reason = State.COLLECTING, why
             return
         self.last_validation["passed"] = True
+        if self._retry is not None:  # a failed push of an earlier set is due again: no new version now
+            self.state = State.COLLECTING
+            self.reason = f"v{self._retry['version']} is pushed again first (round {self._retry['round']})"
+            return
+        why = check_set(self.names, coeffs)
+        if why is not None:
+            self.state, self.reason = State.COLLECTING, f"validated set not pushed: {why}"
+            self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            log.warning("unit %s: %s", self.hello.serial, self.reason)
+            return
+        if now < self._store_retry_at:
+            self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
+            return
+        try:
+            record = self._record(coeffs)
+        except Exception as err:  # never push a set the store does not know
+            self.store_error = str(err)
+            self._store_retry_at = now + self.STORE_RETRY_S
+            self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
+            self.reason = (f"store unavailable: {err}; validated set not pushed, "
+                           f"retrying in {self.STORE_RETRY_S:g} s")
+            log.error("unit %s: %s", self.hello.serial, self.reason)
+            return
+        self.store_error = None
         self.validated_rms = rms_new
-        record = self._record(coeffs)
         self.start_push(record["version"], self.names, coeffs, now)
 
     def _record(self, coeffs: np.ndarray) -> dict[str, Any]:
@@ -290,15 +377,38 @@ class Session:
         return {"version": rec.version}
 
     # -- push ---------------------------------------------------------------------------------
-    def start_push(self, version: int, names: list[str], coeffs: np.ndarray, now: float) -> None:
-        """Push a set (a validated one, a rollback or a file); the unit applies it whole or not."""
-        coeffs = np.asarray(coeffs, dtype=np.float64)
-        write = CoeffWrite(version, terms_id(names), tuple(tuple(map(float, r)) for r in coeffs))
-        self._pending = (names, coeffs)
+    def start_push(self, version: int, names: list[str], coeffs: np.ndarray, now: float,
+                   retry_round: int = 0) -> str | None:
+        """Push a set (a validated one, a rollback or a file); the unit applies it whole or not.
+
+        Returns None when the push started, else why it was refused (then nothing was sent, the
+        session keeps its state, and the record's push status becomes 'refused')."""
+        if self.push is not None:
+            return f"v{self.push.write.version} is being pushed"
+        try:
+            why = check_set(list(names), coeffs)
+            if why is None:
+                coeffs = np.asarray(coeffs, dtype=np.float64)
+                write = CoeffWrite(version, terms_id(names), tuple(tuple(map(float, r)) for r in coeffs))
+        except Exception as err:  # an encoding the protocol refuses
+            why = str(err)
+        if why is not None:
+            log.error("unit %s: push of v%d refused: %s", self.hello.serial, version, why)
+            self.last_push = {"version": version, "status": "refused", "reasons": [why], "utc": utc_now()}
+            try:  # only a record that was never sent is marked: an acked one keeps its history true
+                rec = self.store.get(self.hello.serial, version)
+            except Exception:
+                rec = None
+            if rec is not None and rec.push.get("status") == "pending":
+                self._store_push(version, dict(self.last_push), now)
+            return why
+        self._pending = (list(names), coeffs)
+        self._retry, self._retry_round = None, retry_round  # this push supersedes a pending retry
         self.state = State.PUSHING
         self.reason = f"pushing v{version}"
-        self.push = PushTransaction(write, self.send, now, self.cfg.push["ack_timeout_s"],
+        self.push = PushTransaction(write, self._send, now, self.cfg.push["ack_timeout_s"],
                                     self.cfg.push["retries"])
+        return None
 
     def _after_push(self, now: float) -> None:
         if self.push is None or not self.push.finished:
@@ -309,10 +419,7 @@ class Session:
         version = self.push.write.version
         self.push = None
         self.last_push = {"version": version, **result.as_dict(), "utc": utc_now()}
-        try:
-            self.store.update_push(self.hello.serial, version, self.last_push)
-        except Exception as err:  # the store must never take the session down with it
-            log.error("store: cannot record the push result of v%d: %s", version, err)
+        self._store_push(version, dict(self.last_push), now)
         if result.status == "acked":
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
@@ -325,7 +432,15 @@ class Session:
             self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             self.state = State.COLLECTING
+            if result.transient:  # BUSY, silence, link down: the same record again later
+                rnd = self._retry_round + 1
+                delay = min(self.RETRY_BACKOFF_S * 2.0 ** (rnd - 1), self.RETRY_BACKOFF_MAX_S)
+                names, coeffs = self._pending
+                self._retry = {"version": version, "names": names, "coeffs": coeffs, "round": rnd,
+                               "at": now + delay}
+                self.reason += f"; the same v{version} is tried again in {delay:.0f} s"
             self.applied, self._switch = None, None  # read back what the unit holds, don't assume it
+            self._read_asks = 0
             self.request_read(now)
 
     def _check_alarm(self) -> None:
@@ -362,4 +477,12 @@ class Session:
             "alarm": self.alarm,
             "last_push": self.last_push,
             "warm_started_from": self.warm_started_from,
+            "unit_set": self.agreement,
+            "faults": {"refused_reports": self.refused_reports, "send_failures": self.send_failures,
+                       "coeff_read_asks": self._read_asks,
+                       "store": ("ok" if self.store_error is None
+                                 else f"store unavailable: {self.store_error}"),
+                       "unrecorded_push_results": len(self.unrecorded),
+                       "retry": None if self._retry is None else {"version": self._retry["version"],
+                                                                   "round": self._retry["round"]}},
         }

@@ -36,10 +36,17 @@ FORMAT = "gyrocal.calibration/1"
 """Written into every record so a future layout change can be recognised."""
 
 PUSH_STATUSES = (
-    "pending", "acked", "nak", "timeout", "crc_mismatch", "readback_mismatch", "readback_timeout",
+    "pending", "acked", "applied_ack_lost", "nak", "timeout", "link_down", "refused", "abandoned",
+    "crc_mismatch", "readback_mismatch", "readback_timeout",
 )
-"""Known push results. Only 'acked' sets are candidates for warm start and rollback. Another status
-string is stored anyway, with a warning: losing the record of a failed push would be worse."""
+"""Known push results. 'applied_ack_lost': the push ended without its ack, but a later read-back
+showed the unit holds exactly this set (see daemon/reconcile.py). 'refused': the daemon refused to
+send it (e.g. the link was down when it started, or the set failed a check). 'abandoned': left
+'pending' by a daemon that stopped mid-push. Another status string is stored anyway, with a warning:
+losing the record of a failed push would be worse."""
+
+APPLIED_STATUSES = ("acked", "applied_ack_lost")
+"""Sets the unit verifiably held: the only candidates for warm start and rollback."""
 
 _VERSION_FILE = re.compile(r"^v(\d{6,})\.json$")
 _TMP_SUFFIX = ".tmp"
@@ -267,11 +274,12 @@ class CalibrationStore:
             return self._load(serial).get(version)
 
     def latest(self, serial: int, acked_only: bool = True) -> CalibrationRecord | None:
-        """The newest record; with acked_only, the newest one the unit acknowledged (the warm start)."""
+        """The newest record; with acked_only, the newest one the unit verifiably held (acked, or
+        applied with its ack lost: the warm start)."""
         with self._lock:
             recs = self._load(serial)
             for v in sorted(recs, reverse=True):
-                if not acked_only or recs[v].push.get("status") == "acked":
+                if not acked_only or recs[v].push.get("status") in APPLIED_STATUSES:
                     return recs[v]
             return None
 
@@ -299,7 +307,7 @@ class CalibrationStore:
             names = []
         for name in names:
             path = udir / name
-            if name.endswith(_TMP_SUFFIX):
+            if name.endswith(_TMP_SUFFIX):  # removed by clean_leftovers() at daemon start
                 log.warning("calibration store: ignoring leftover temporary file %s (an interrupted write; "
                             "safe to delete)", path)
                 continue
@@ -314,6 +322,38 @@ class CalibrationStore:
         self._cache[serial] = recs
         self._max_seen[serial] = max_seen
         return recs
+
+    def clean_leftovers(self) -> int:
+        """Delete the temporary files of interrupted writes under every unit (call at daemon start,
+        when this process is the only writer); returns how many were removed."""
+        removed = 0
+        with self._lock:
+            for serial in self.units():
+                try:
+                    names = os.listdir(self._unit_dir(serial))
+                except OSError:
+                    continue
+                for name in names:
+                    if name.endswith(_TMP_SUFFIX) and self._remove_leftover(self._unit_dir(serial) / name):
+                        removed += 1
+        return removed
+
+    @staticmethod
+    def _remove_leftover(path: Path) -> bool:
+        """A '.vNNNNNN.json.<pid>.<tid>.tmp' of a write cut short: the final file is the old or the new
+        version, never this one, so it is safe to delete. Ours (this pid) may be in flight: keep it."""
+        if f".{os.getpid()}." in path.name:
+            return False
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            return False
+        except OSError as err:
+            log.warning("calibration store: cannot remove leftover temporary file %s (%s); it is ignored",
+                        path, err)
+            return False
+        log.info("calibration store: removed leftover temporary file %s (an interrupted write)", path)
+        return True
 
     @staticmethod
     def _read_file(path: Path, serial: int, version: int) -> CalibrationRecord | None:

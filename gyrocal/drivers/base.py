@@ -218,7 +218,9 @@ class Link(ABC):
                     log.exception("%s link: callback failed on %s", self.kind, type(m).__name__)
 
     def _emit(self, name: str, detail: str) -> None:
-        log.info("%s link %s: %s", self.kind, name, detail)
+        # every back-off round would be a line: the listener (the engine) logs state changes
+        level = logging.DEBUG if name == "reconnecting" else logging.INFO
+        log.log(level, "%s link %s: %s", self.kind, name, detail)
         if self.on_event is None:
             return
         try:

@@ -259,7 +259,8 @@ class CanDecoder:
         rows = (flat[: t.n], flat[t.n : 2 * t.n], flat[2 * t.n :])
         try:
             crc = coeff_set_crc(t.version, t.terms_id, rows)
-        except ProtocolError:
+        except ProtocolError:  # NaN/Inf under a valid CRC: counted and dropped
+            self.stats.bad_values += 1
             return None, NakReason.OUT_OF_RANGE
         if crc != raw["CRC"]:
             self.stats.crc_errors += 1

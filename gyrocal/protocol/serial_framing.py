@@ -16,6 +16,7 @@ out, no I/O, no threads, and it never holds more than one maximal frame (521 byt
 from __future__ import annotations
 
 import binascii
+import math
 import struct
 from collections.abc import Callable
 
@@ -156,6 +157,15 @@ def _nak_reason(code: int) -> int:
         return code
 
 
+MAX_COUNTED_GAP = 1 << 20
+"""A forward seq jump up to this many samples counts as lost samples; a farther one is an outlier or a
+restart (the engine tells which), not 17 minutes of 1 kHz samples lost."""
+
+
+class NonFiniteCoefficients(ProtocolError):
+    """A coefficient set frame whose values are not all finite (counted as ``bad_values``)."""
+
+
 def decode_payload(typ: int, payload: bytes | memoryview) -> object:
     """Message of a checked frame; ProtocolError if the payload does not fit the type's layout."""
     if typ == T_SAMPLE:
@@ -169,6 +179,12 @@ def decode_payload(typ: int, payload: bytes | memoryview) -> object:
             return Hello(serial, f"{major}.{minor}.{patch}", boots, rate)
         if typ in (T_COEFF_WRITE, T_COEFF_REPORT):
             version, tid, rows = parse_coeff_set(payload)
+            if not all(math.isfinite(c) for row in rows for c in row):
+                # a CRC-valid frame can still carry NaN/Inf (a unit's bug, a fuzzer): no such set
+                # exists on the wire (coeff_set_bytes refuses to encode it), so drop and count it,
+                # as the CAN decoder does; the host reads again after its timeout
+                raise NonFiniteCoefficients(
+                    f"frame type 0x{typ:02X}: coefficient set v{version} holds NaN or Inf")
             return (CoeffWrite if typ == T_COEFF_WRITE else CoeffReport)(version, tid, rows)
         if typ == T_COEFF_ACK:
             return CoeffAck(*ACK_PAYLOAD.unpack(payload))
@@ -258,6 +274,10 @@ class FrameDecoder:
                 self._locked = True
                 try:
                     msg = decode_payload(typ, mv[pos + HEADER_SIZE : end - CRC_SIZE])
+                except NonFiniteCoefficients:
+                    st.bad_values += 1
+                    pos = end
+                    continue
                 except ProtocolError:
                     st.length_errors += 1
                     pos = end
@@ -270,7 +290,7 @@ class FrameDecoder:
                     if last is not None and seq != (last + 1) & 0xFFFFFFFF:
                         st.seq_gaps += 1
                         missing = (seq - last - 1) & 0xFFFFFFFF
-                        if missing < 0x80000000:  # else a repeat or step back: nothing lost
+                        if missing < MAX_COUNTED_GAP:  # else a repeat, a step back or an outlier's far seq
                             st.lost_samples += missing
                     self._last_seq = seq
                 elif typ == T_HELLO:

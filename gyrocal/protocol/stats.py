@@ -20,6 +20,7 @@ class DecoderStats:
     incomplete: CAN samples or coefficient transfers abandoned with a missing or duplicated part.
     unanchored: CAN samples dropped because no SAMPLE_TIME anchor had given the unit time yet.
     foreign_frames: CAN frames of other nodes or other protocols on a shared bus (ignored, not errors).
+    bad_values: coefficient sets under a valid CRC that hold NaN or Inf (dropped).
     """
 
     frames: int = 0
@@ -35,6 +36,7 @@ class DecoderStats:
     incomplete: int = 0
     unanchored: int = 0
     foreign_frames: int = 0
+    bad_values: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON status output."""
@@ -42,4 +44,5 @@ class DecoderStats:
 
     def errors(self) -> int:
         """All rejected frames and parts (excludes gaps, which the link may cause without corruption)."""
-        return self.crc_errors + self.oversize + self.length_errors + self.unknown_types + self.incomplete
+        return (self.crc_errors + self.oversize + self.length_errors + self.unknown_types + self.incomplete
+                + self.bad_values)

@@ -2,7 +2,9 @@
 
 The first line on stdout (flushed) is where the daemon finds the unit: the pty slave path for
 ``--link pty``, or the bus arguments for ``--link can``. SIGUSR1 power-cycles the unit (a new
-session: HELLO, a new bias, seq from 0); SIGTERM and SIGINT stop it cleanly.
+session: HELLO, a new bias, seq from 0); SIGUSR2 toggles a silence (the unit stalls: nothing sent,
+nothing answered, its counter runs on); SIGHUP replugs the cable (pty: a new pty pair behind the same
+``--pty-link``, the unit keeps running); SIGTERM and SIGINT stop it cleanly.
 
 Examples::
 
@@ -76,6 +78,18 @@ def configure(p: argparse.ArgumentParser) -> None:
     f.add_argument("--never-hello", action="store_true", help="do not send HELLO at switch-on")
     f.add_argument("--garbage-rate", type=float, default=0.0, metavar="P",
                    help="probability per frame of random garbage bytes before it (pty only)")
+    f.add_argument("--nan-readback", type=int, default=0, metavar="N",
+                   help="answer the next N COEFF_READs with NaN coefficients (valid frame CRC)")
+    f.add_argument("--lose-ack", type=int, default=0, metavar="N",
+                   help="apply the next N valid writes but lose their ack")
+    f.add_argument("--cycle-after-ack", type=int, default=0, metavar="N",
+                   help="power-cycle right after each of the next N acks")
+    f.add_argument("--no-coeff-read", action="store_true", help="never answer COEFF_READ")
+    f.add_argument("--seq-outlier-every", type=float, default=0.0, metavar="S",
+                   help="send one sample with a far sequence number every S s (0 = never)")
+    f.add_argument("--silence-at", type=float, default=0.0, metavar="S",
+                   help="go silent S s after start (see --silence-for; SIGUSR2 toggles at run time)")
+    f.add_argument("--silence-for", type=float, default=0.0, metavar="S", help="length of that silence [s]")
     p.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
 
 
@@ -122,9 +136,10 @@ def can_bus_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 def _check(args: argparse.Namespace) -> None:
     if not 0 < args.rate <= MAX_RATE_HZ:
         raise ConfigError(f"--rate {args.rate:g}: must be in (0, {MAX_RATE_HZ:g}] samples/s")
-    for name in ("duration", "power_cycle_every"):
+    for name in ("duration", "power_cycle_every", "seq_outlier_every", "silence_at", "silence_for",
+                 "nak_next", "drop_acks", "nan_readback", "lose_ack", "cycle_after_ack"):
         if getattr(args, name) < 0:
-            raise ConfigError(f"--{name.replace('_', '-')}: must be >= 0 s")
+            raise ConfigError(f"--{name.replace('_', '-')}: must be >= 0")
     if not 0.0 <= args.garbage_rate <= 1.0:
         raise ConfigError(f"--garbage-rate {args.garbage_rate:g}: must be a probability in [0, 1]")
     if args.link == "can" and args.pty_link:
@@ -149,7 +164,10 @@ def main(args: argparse.Namespace) -> int:
     _check(args)
     schedule = load_schedule(args.schedule) if args.schedule else tumble()
     faults = Faults(nak_next=args.nak_next, drop_acks=args.drop_acks, never_hello=args.never_hello,
-                    garbage_rate=args.garbage_rate)
+                    garbage_rate=args.garbage_rate, nan_readback=args.nan_readback, lose_ack=args.lose_ack,
+                    cycle_after_ack=args.cycle_after_ack, no_coeff_read=args.no_coeff_read,
+                    seq_outlier_every_s=args.seq_outlier_every, silence_at_s=args.silence_at,
+                    silence_for_s=args.silence_for)
     unit = VirtualUnit(TruthModel(), schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
@@ -195,6 +213,8 @@ def _install_signals(runner: Runner) -> None:
     signal.signal(signal.SIGINT, stop)
     if hasattr(signal, "SIGUSR1"):
         signal.signal(signal.SIGUSR1, cycle)
+        signal.signal(signal.SIGUSR2, lambda signum, frame: runner.toggle_silence())
+        signal.signal(signal.SIGHUP, lambda signum, frame: runner.request_replug())
 
 
 if __name__ == "__main__":

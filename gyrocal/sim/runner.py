@@ -6,11 +6,18 @@ runner sends all samples due since switch-on, so a 2 kHz unit sends ~8 samples e
 runner that fell behind catches up in larger batches (at most ``max_batch_s`` worth at once).
 
 Between batches the runner waits on the transport for host requests and answers them at once.
-``request_power_cycle`` and ``request_stop`` only set flags, so they are safe in signal handlers.
+``request_power_cycle``, ``request_stop`` and ``toggle_silence`` only set flags, so they are safe in
+signal handlers.
+
+Faults the runner plays (``unit.faults``): a power cycle right after an ack (``cycle_after_ack``),
+one sample with a far sequence number every ``seq_outlier_every_s``, and a silence (nothing sent,
+nothing answered, the sample counter running on) from ``silence_at_s`` for ``silence_for_s``, or
+toggled at run time (SIGUSR2 in ``gyrocal sim``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -74,6 +81,12 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         self.flash_path = flash_path
         self._cycle_requested = False
         self._stop_requested = False
+        self._silence_toggled = False
+        self._replug_requested = False
+        self.replugs = 0
+        self._started = time.monotonic()
+        self._next_outlier = 0
+        self.outliers_sent = 0
         self._session_t0 = 0.0
         self.replies_sent = 0
         self.requests = 0
@@ -84,6 +97,19 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
 
     def request_stop(self) -> None:
         self._stop_requested = True
+
+    def request_replug(self) -> None:
+        self._replug_requested = True
+
+    def toggle_silence(self) -> None:
+        self._silence_toggled = not self._silence_toggled
+
+    def silent(self, now: float) -> bool:
+        """True while the unit sends and answers nothing (fault ``silence_*`` or SIGUSR2)."""
+        f = self.unit.faults
+        t = now - self._started
+        window = f.silence_at_s > 0 and f.silence_at_s <= t < f.silence_at_s + f.silence_for_s
+        return window != self._silence_toggled
 
     # ---- the loop ------------------------------------------------------------------------------
     def run(self) -> int:
@@ -98,6 +124,12 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
                     self._cycle_requested = False
                     self._power_on()
                     continue
+                if self._replug_requested and hasattr(self.transport, "reopen"):
+                    self._replug_requested = False
+                    self.transport.reopen()
+                    self.replugs += 1
+                    log.info("cable replugged: new port %s", self.transport.describe())
+                    self.write_status()
                 if self.total_samples and self.unit.samples_sent >= self.total_samples:
                     self._linger()
                     break
@@ -129,7 +161,17 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         if due <= 0:
             return
         chunk = self.unit.render(min(due, self.max_batch))
-        self.transport.send(chunk.samples())
+        if self.silent(now):
+            return  # the unit's clock and counter run on; nothing reaches the wire
+        samples = chunk.samples()
+        every = round(self.unit.faults.seq_outlier_every_s * self.unit.rate_hz)
+        if every > 0 and int(chunk.seq[-1]) >= self._next_outlier:
+            if self._next_outlier:
+                k = len(samples) // 2
+                samples[k] = dataclasses.replace(samples[k], seq=(samples[k].seq + 0x40000000) % (1 << 32))
+                self.outliers_sent += 1
+            self._next_outlier = int(chunk.seq[-1]) + every
+        self.transport.send(samples)
         if self.recorder is not None:
             self.recorder.write(chunk.columns)
 
@@ -139,7 +181,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         while True:
             timeout = deadline - time.monotonic()
             msgs = self.transport.poll(max(0.0, timeout))
-            if msgs:
+            if msgs and not self.silent(time.monotonic()):
                 self._answer(msgs)
             if timeout <= 0 or self._stop_requested or self._cycle_requested:
                 return
@@ -156,6 +198,10 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
             log.info("applied coefficient set version %s", self.unit.applied and self.unit.applied.version)
             self.save_flash()
             self.write_status()
+        if self.unit.cycle_pending:  # fault: the power fails right after the ack went out
+            self.unit.cycle_pending = False
+            self.transport.flush()
+            self._power_on()
 
     def _linger(self) -> None:
         end = time.monotonic() + self.linger_s
@@ -171,6 +217,8 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         doc.update(running=running, link=self.transport.kind, address=self.transport.describe(),
                    transport=dict(self.transport.stats), backlog_bytes=self.transport.backlog_bytes,
                    requests=self.requests, replies_sent=self.replies_sent, pid=os.getpid(),
+                   outliers_sent=self.outliers_sent, replugs=self.replugs,
+                   silent=self.silent(time.monotonic()),
                    wall_time=time.time())
         if self.recorder is not None:
             doc.update(record=str(self.recorder.path), recorded_rows=self.recorder.rows)

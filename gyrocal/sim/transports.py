@@ -13,10 +13,13 @@ blocks the unit's sample clock for long:
 
 from __future__ import annotations
 
+import binascii
 import errno
 import logging
+import math
 import os
 import select
+import struct
 import tty
 from collections.abc import Iterable
 from pathlib import Path
@@ -26,7 +29,8 @@ import can
 import numpy as np
 
 from gyrocal.errors import ConfigError, LinkError
-from gyrocal.protocol.serial_framing import FrameDecoder, encode_frame
+from gyrocal.protocol.serial_framing import SYNC, T_COEFF_REPORT, FrameDecoder, encode_frame
+from gyrocal.sim.unit import NanReport
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +73,23 @@ class PtyTransport:
     def describe(self) -> str:
         return self.path
 
+    def reopen(self) -> None:
+        """A cable replug: this pty pair goes away and a new one takes its place (and the symlink).
+        The unit keeps running; the host sees its port vanish and come back."""
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        if self.link_path:
+            _replace_symlink(Path(self.link_path), self.path)
+        self._backlog.clear()
+        self._decoder.reset()
+
     def send(self, msgs: Iterable[Any]) -> None:
         """Queue and write the frames of ``msgs``; never blocks."""
         out = bytearray()
@@ -77,7 +98,7 @@ class PtyTransport:
                 junk = self._rng.integers(0, 256, int(self._rng.integers(1, 17)), dtype=np.uint8).tobytes()
                 out += junk
                 self.stats["garbage_bytes"] += len(junk)
-            frame = encode_frame(m)
+            frame = nan_report_frame(m) if isinstance(m, NanReport) else encode_frame(m)
             if len(self._backlog) + len(out) + len(frame) > self.max_backlog_bytes:
                 self.stats["tx_dropped_frames"] += 1
                 continue
@@ -138,6 +159,19 @@ class PtyTransport:
                 p.unlink()
 
 
+def nan_report_payload(m: NanReport) -> bytes:
+    """The canonical coefficient-set bytes (docs/protocol.md) of a set of NaNs, built by hand."""
+    return struct.pack("<IHB", m.version, m.terms_id, m.n_terms) + struct.pack(
+        f"<{3 * m.n_terms}d", *([math.nan] * (3 * m.n_terms)))
+
+
+def nan_report_frame(m: NanReport) -> bytes:
+    """A serial COEFF_REPORT frame carrying NaNs, with a valid frame CRC-32."""
+    payload = nan_report_payload(m)
+    head = struct.pack("<BH", T_COEFF_REPORT, len(payload))
+    return SYNC + head + payload + struct.pack("<I", binascii.crc32(payload, binascii.crc32(head)))
+
+
 def _replace_symlink(link: Path, target: str) -> None:
     if link.is_symlink():
         link.unlink()
@@ -180,12 +214,25 @@ class CanTransport:
 
     def send(self, msgs: Iterable[Any]) -> None:
         for m in msgs:
-            for frame in self._codec.encode(m):
+            frames = self._nan_report(m) if isinstance(m, NanReport) else self._codec.encode(m)
+            for frame in frames:
                 try:
                     self.bus.send(frame)
                     self.stats["frames_sent"] += 1
                 except (can.CanError, OSError):
                     self.stats["tx_errors"] += 1
+
+    def _nan_report(self, m: NanReport) -> list[can.Message]:
+        """REPORT_BEGIN / DATA / END of a NaN set with a matching CRC (the codec refuses to encode it)."""
+        payload = nan_report_payload(m)
+        words = struct.unpack(f"<{(len(payload) - 7) // 4}I", payload[7:])
+        c = self._codec
+        frames = [c._frame("REPORT_BEGIN",
+                           {"CAL_VERSION": m.version, "TERMS_ID": m.terms_id, "N_TERMS": m.n_terms})]
+        frames += [c._frame("REPORT_DATA", {"CHUNK": k, "CAL_VERSION_LO": m.version & 0xFFFF, "WORD": w})
+                   for k, w in enumerate(words)]
+        frames.append(c._frame("REPORT_END", {"CAL_VERSION": m.version, "CRC": binascii.crc32(payload)}))
+        return frames
 
     def flush(self) -> None:
         """Nothing is queued on our side."""

@@ -20,7 +20,7 @@ NAKs, lost acks and a silent switch-on.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -63,6 +63,30 @@ class Faults:
     """Do not announce switch-on."""
     garbage_rate: float = 0.0
     """Probability per frame that the transport prepends a burst of 1..16 random bytes (serial)."""
+    nan_readback: int = 0
+    """The next N COEFF_REPORTs carry NaN coefficients under a valid frame CRC (a unit's bug)."""
+    lose_ack: int = 0
+    """Apply the next N valid writes but lose their ack (the host sees silence, the unit holds the set)."""
+    cycle_after_ack: int = 0
+    """Power-cycle right after the next N acks (the host may never see the read-back)."""
+    no_coeff_read: bool = False
+    """Never answer COEFF_READ (a listen-only replay, a unit without read-back)."""
+    seq_outlier_every_s: float = 0.0
+    """One sample with a far sequence number every S s of unit time (0 = never)."""
+    silence_at_s: float = 0.0
+    """Go silent (send nothing, answer nothing) this many s after the process started (0 = never)."""
+    silence_for_s: float = 0.0
+    """How long the silence lasts [s]; the sample counter keeps running meanwhile."""
+
+
+@dataclass(frozen=True)
+class NanReport:
+    """A COEFF_REPORT whose coefficients are NaN: no encoder produces it, so transports build the
+    frames by hand (fault injection only)."""
+
+    version: int
+    terms_id: int
+    n_terms: int
 
 
 @dataclass(frozen=True)
@@ -115,7 +139,8 @@ class VirtualUnit:
         self.applied: AppliedSet | None = applied
         self.stream: SessionStream | None = None
         self.samples_sent = 0
-        self.writes = {"acked": 0, "naked": 0, "dropped": 0}
+        self.writes = {"acked": 0, "naked": 0, "dropped": 0, "acks_lost": 0}
+        self.cycle_pending = False  # set by the cycle_after_ack fault; the runner power-cycles
 
     # ---- switch-on and output ------------------------------------------------------------------
     def power_on(self) -> list[Any]:
@@ -180,6 +205,13 @@ class VirtualUnit:
                           rate_hz=int(round(self.rate_hz)))]
         if isinstance(msg, CoeffRead):
             a = self.applied
+            if self.faults.no_coeff_read:
+                return []
+            if self.faults.nan_readback > 0:
+                self.faults.nan_readback -= 1
+                if a is None:
+                    return [NanReport(0, termsets.SEED000_ID, 10)]
+                return [NanReport(a.version, a.terms_id, len(a.names))]
             if a is None:
                 return [CoeffReport(version=0, terms_id=0, coeffs_dps=((), (), ()))]
             return [CoeffReport(version=a.version, terms_id=a.terms_id, coeffs_dps=a.wire_coeffs())]
@@ -200,6 +232,13 @@ class VirtualUnit:
             return [CoeffNak(version=msg.version, crc=_crc_or_zero(msg), reason=int(reason))]
         self.applied = self._build(msg)  # atomic apply: build the whole set, then swap one reference
         self.writes["acked"] += 1
+        if f.cycle_after_ack > 0:
+            f.cycle_after_ack -= 1
+            self.cycle_pending = True
+        if f.lose_ack > 0:
+            f.lose_ack -= 1
+            self.writes["acks_lost"] += 1
+            return []
         return [CoeffAck(version=msg.version, crc=self.applied.crc)]
 
     @staticmethod
@@ -255,8 +294,7 @@ class VirtualUnit:
             "drift_rms_raw_dps": _xyz(raw), "drift_rms_compensated_dps": _xyz(comp),
             "samples_sent": self.samples_sent, "session_samples": self.session_index,
             "rate_hz": self.rate_hz, "writes": dict(self.writes),
-            "faults": {"nak_next": self.faults.nak_next, "drop_acks": self.faults.drop_acks,
-                       "never_hello": self.faults.never_hello, "garbage_rate": self.faults.garbage_rate},
+            "faults": asdict(self.faults),
         }
 
     # ---- flash persistence (optional, for a sim restarted as a new process) --------------------

@@ -1,0 +1,121 @@
+"""Control commands for the engine: recalibrate, rollback, push, and the SIGHUP reload.
+
+Why a mixin of the engine: commands run on the engine loop (handed over through its inbox), so they
+may touch the session and the store directly; they live here to keep engine.py about the loop.
+
+Every command is validated before anything is stored or sent (push.check_set: at most MAX_TERMS
+terms, a known term set, 3 finite rows, within range), and answered with a clear error otherwise.
+A push the session refuses (start_push returning a reason) is answered as refused, and the session
+stays where it was: a bad command never freezes it in PUSHING.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from gyrocal.daemon.config import load_config
+from gyrocal.daemon.push import check_set
+from gyrocal.daemon.session import State
+from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord
+
+log = logging.getLogger("gyrocal.engine")
+
+
+class CommandsMixin:
+    """Engine methods for control commands; see the module docstring."""
+
+    cfg: Any
+    store: Any
+    session: Any
+    link: Any
+    last_hello: Any
+    notifier: Any
+
+    def _start_session(self, hello: Any, now: float) -> None:  # the engine's
+        raise NotImplementedError
+
+    # -- commands -----------------------------------------------------------------------------
+    def _command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
+        cmd = req.get("cmd")
+        try:
+            if cmd == "recalibrate":
+                if self.last_hello is None:
+                    return {"ok": False, "error": "no unit has announced itself (HELLO) yet"}
+                self._start_session(self.last_hello, now)
+                return {"ok": True, "message": "new calibration session started"}
+            if cmd in ("rollback", "push"):
+                return self._push_command(req, now)
+        except Exception as err:  # a bad command must not stop the loop
+            log.exception("command %r failed", cmd)
+            return {"ok": False, "error": str(err)}
+        return {"ok": False, "error": f"unknown command {cmd!r}; use status, recalibrate, rollback, push"}
+
+    def _push_command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
+        s = self.session
+        if s is None:
+            return {"ok": False, "error": "no unit session yet; wait for the unit's HELLO"}
+        if s.state is State.PUSHING:
+            return {"ok": False, "error": "a push is already under way; try again in a few seconds"}
+        serial = s.hello.serial
+        if req["cmd"] == "rollback":
+            target = req.get("to")
+            history = [r for r in self.store.history(serial) if r.push.get("status") in APPLIED_STATUSES]
+            if target is None:
+                current = s.applied.version if s.applied is not None else None
+                older = [r for r in history if current is None or r.version < current]
+                if not older:
+                    return {"ok": False, "error": "no earlier acked calibration to roll back to"}
+                rec = older[-1]
+            else:
+                rec = self.store.get(serial, int(target))
+                if rec is None:
+                    return {"ok": False, "error": f"unit {serial} has no calibration v{target}"}
+            why = check_set(list(rec.terms), rec.coefficients_dps)
+            if why is not None:
+                return {"ok": False, "error": f"stored v{rec.version} cannot be pushed: {why}"}
+            return self._started(s.start_push(rec.version, list(rec.terms),
+                                              np.asarray(rec.coefficients_dps), now), rec.version)
+        terms = req.get("terms")
+        if not isinstance(terms, list) or not terms:
+            return {"ok": False, "error": "push needs 'terms': a list of term names"}
+        terms = [str(t) for t in terms]
+        why = check_set(terms, req.get("coefficients"))
+        if why is not None:
+            return {"ok": False, "error": why}
+        if self.link is None or not self.link.connected:
+            return {"ok": False, "error": "the unit is not connected; nothing was pushed or stored"}
+        coeffs = np.asarray(req["coefficients"], dtype=np.float64)
+        try:
+            rec = self.store.add(CalibrationRecord(
+                serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
+                uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
+                session={"boot_count": s.hello.boot_count}, push={"status": "pending"}))
+        except Exception as err:  # never a unit set the store does not know: refuse the push
+            return {"ok": False, "error": f"store unavailable ({err}); nothing was pushed"}
+        return self._started(s.start_push(rec.version, terms, coeffs, now), rec.version)
+
+    @staticmethod
+    def _started(error: str | None, version: int) -> dict[str, Any]:
+        if error is not None:
+            return {"ok": False, "error": f"push of v{version} refused: {error}", "version": version}
+        return {"ok": True, "message": f"pushing v{version}", "version": version}
+
+    def _reload(self) -> None:
+        self.notifier.reloading()
+        if self.cfg.source.startswith("<"):
+            log.info("SIGHUP: no config file to reload")
+        else:
+            try:
+                new = load_config(self.cfg.source)
+            except Exception as err:  # a broken edit must not kill a running daemon
+                log.error("SIGHUP: config not reloaded: %s", err)
+            else:
+                if new.link != self.cfg.link:
+                    log.warning("SIGHUP: link settings changed; they take effect at the next restart")
+                for section in ("validation", "push", "monitor", "still", "estimator"):
+                    setattr(self.cfg, section, getattr(new, section))
+                log.info("SIGHUP: configuration reloaded from %s", self.cfg.source)
+        self.notifier.ready()

@@ -1,0 +1,118 @@
+"""Reconciliation: the unit's read-back is the truth, and the store is brought into line with it.
+
+Why: a push can be cut at any moment (the ack lost on the wire, the unit power-cycled right after
+its ack, the daemon killed mid-push, the cable pulled). The unit applies a set whole or not at all,
+so after any of these the unit holds either the old set or the new one, and only its COEFF_REPORT
+says which. The store, written by the daemon, may say 'pending' or 'timeout' for a set the unit in
+fact holds. Left alone, warm start and rollback would then skip the very set the unit uses.
+
+Rules (applied at every read-back: the session's first COEFF_READ after a HELLO or a reconnect, and
+every push's read-back; and at daemon start for the store alone):
+
+- a report whose CRC matches a stored version of this unit that is not already marked applied
+  ('pending', 'timeout', 'nak', 'link_down', 'abandoned', ...) marks that version
+  ``applied_ack_lost``: the unit verifiably holds it, although the push never saw its ack. The old
+  status and the time are kept in ``push.history``, so nothing that happened is erased;
+- a report whose version is stored but whose CRC differs is a disagreement: reported in status and
+  logged once, never "fixed" by rewriting the record (the unit may hold a set another tool wrote);
+- a report of a version the store does not know (another host, a factory set) is reported as such;
+- at daemon start, every 'pending' record is closed as ``abandoned`` (reason: the daemon stopped
+  before its push finished). If the unit turns out to hold it, the first read-back makes it
+  ``applied_ack_lost``.
+
+Warm start and rollback use :data:`APPLIED_STATUSES` ('acked' and 'applied_ack_lost'): sets the unit
+verifiably held.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, CalibrationStore, utc_now
+from gyrocal.errors import ProtocolError
+from gyrocal.protocol.messages import coeff_set_crc
+from gyrocal.protocol.termsets import terms_id
+
+log = logging.getLogger("gyrocal.reconcile")
+
+
+def record_crc(rec: CalibrationRecord) -> int | None:
+    """The wire CRC of a stored set (what the unit's ack and read-back carry), None if not encodable."""
+    try:
+        return coeff_set_crc(rec.version, terms_id(rec.terms), rec.coefficients_dps)
+    except (ProtocolError, ValueError, KeyError):
+        return None
+
+
+@dataclass
+class Agreement:
+    """The unit's set against the store's view of it, for status."""
+
+    unit_version: int
+    unit_crc: int | None
+    store_status: str | None  # push status of that version in the store, None if unknown to it
+    agree: bool
+    note: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"agree": self.agree, "note": self.note, "unit_version": self.unit_version,
+                "unit_crc": None if self.unit_crc is None else f"0x{self.unit_crc:08x}",
+                "store_status": self.store_status}
+
+
+def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | None) -> Agreement:
+    """Bring the store into line with a read-back of ``version`` with wire ``crc`` (see module doc).
+
+    Raises nothing for a store that cannot be written: the caller gets the agreement with a note,
+    and the next read-back tries again.
+    """
+    if version == 0:
+        return Agreement(0, crc, None, True, "the unit holds no set (version 0)")
+    rec = store.get(serial, version)
+    if rec is None:
+        return Agreement(version, crc, None, False,
+                         f"the unit holds v{version}, which this store does not know "
+                         "(written by another host?)")
+    status = str(rec.push.get("status"))
+    if crc is None or record_crc(rec) != crc:
+        return Agreement(version, crc, status, False,
+                         f"the unit holds a v{version} whose CRC differs from the stored v{version}")
+    if status in APPLIED_STATUSES:
+        return Agreement(version, crc, status, True, f"the unit holds v{version}, as the store says")
+    history = list(rec.push.get("history") or [])
+    history.append({"status": status, "reasons": rec.push.get("reasons"), "until_utc": utc_now()})
+    try:
+        store.update_push(serial, version, {"status": "applied_ack_lost", "acked_crc": crc,
+                                            "readback_ok": True, "history": history,
+                                            "reconciled_utc": utc_now()})
+    except Exception as err:  # a full disk: say so, retry at the next read-back
+        return Agreement(version, crc, status, False,
+                         f"the unit holds v{version} (stored as {status!r}); store not updated: {err}")
+    log.warning("unit %d holds v%d although its push ended %r: recorded as applied (ack lost)",
+                serial, version, status)
+    return Agreement(version, crc, "applied_ack_lost", True,
+                     f"the unit holds v{version}; its push had ended {status!r}: now applied (ack lost)")
+
+
+def close_abandoned(store: CalibrationStore) -> int:
+    """At daemon start: mark every 'pending' record 'abandoned' with a reason; returns how many."""
+    closed = 0
+    for serial in store.units():
+        for rec in store.history(serial):
+            if rec.push.get("status") != "pending":
+                continue
+            try:
+                store.update_push(serial, rec.version, {
+                    "status": "abandoned", "time": utc_now(),
+                    "reasons": [*(rec.push.get("reasons") or []),
+                                "the daemon stopped before this push finished; the unit's read-back decides "
+                                "whether it was applied"]})
+                closed += 1
+            except Exception as err:  # a read-only store: it stays 'pending', which says as much
+                log.warning("calibration store: cannot close pending v%d of unit %d: %s",
+                            rec.version, serial, err)
+    if closed:
+        log.info("calibration store: %d push(es) left pending by an earlier run closed as abandoned", closed)
+    return closed

@@ -1,0 +1,120 @@
+"""The session's fault paths: sends that fail, reading the unit's set, the store that fails.
+
+Split from session.py (the state machine) so each stays small; the rules themselves are written
+down once, in session.py's docstring ("Recovery rules"). A mixin of ``Session``: it uses the
+session's ``cfg``, ``hello``, ``store``, ``send``, ``push`` and its bookkeeping fields.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from gyrocal.daemon.reconcile import reconcile
+from gyrocal.daemon.store import utc_now
+from gyrocal.protocol.messages import CoeffRead, CoeffReport, coeff_set_crc
+
+log = logging.getLogger("gyrocal.session")
+
+
+class RecoveryMixin:
+    """Send, read-back, reconciliation and store-retry methods of ``Session``."""
+
+    READ_BACKOFF_MAX_S = 30.0
+    """Longest wait between two unanswered COEFF_READs [s]."""
+    READ_WARN_AFTER = 3
+    """Unanswered COEFF_READs before the one WARNING."""
+    RETRY_BACKOFF_S = 5.0
+    """First wait before a transiently failed push is sent again (same version) [s]; doubles."""
+    RETRY_BACKOFF_MAX_S = 300.0
+    """Longest wait between two rounds of the same push [s]."""
+    STORE_RETRY_S = 5.0
+    """Wait before writing to a store that failed again [s]."""
+
+    cfg: Any
+    hello: Any
+    store: Any
+    send: Any
+    push: Any
+    applied: Any
+    _switch: Any
+    last_push: dict[str, Any]
+    agreement: dict[str, Any]
+    unrecorded: list[tuple[int, dict[str, Any]]]
+    store_error: str | None
+    send_failures: int
+    _link_warned: bool
+    _read_asks: int
+    _read_deadline: float
+    _store_retry_at: float
+    _retry: Any
+
+    def _send(self, msg: Any) -> bool:
+        """Send to the unit; a link failure is counted and logged once per outage, never raised."""
+        try:
+            self.send(msg)
+        except Exception as err:  # LinkError / OSError: unplugged, or a write that failed
+            self.send_failures += 1
+            if not self._link_warned:
+                log.warning("unit %s: %s not sent (%s); the session waits for the link",
+                            self.hello.serial, type(msg).__name__, err)
+                self._link_warned = True
+            return False
+        self._link_warned = False
+        return True
+
+    def close(self, reason: str, now: float) -> None:
+        """The session ends (a new switch-on, a recalibration): a push still under way is recorded as
+        'abandoned' with the reason; the next read-back decides whether the unit applied it."""
+        if self.push is not None:
+            version = self.push.write.version
+            self.push = None
+            self.last_push = {"version": version, "status": "abandoned", "utc": utc_now(),
+                              "reasons": [f"push cut short: {reason}; the unit's read-back decides"]}
+            log.warning("unit %s: push of v%d abandoned: %s", self.hello.serial, version, reason)
+            self._store_push(version, dict(self.last_push), now)
+        self._retry = None
+
+    def relink(self, now: float) -> None:
+        """The link came back: the unit may have changed its set meanwhile; read it again."""
+        self._read_asks = 0
+        if self.push is None:
+            self.applied, self._switch = None, None
+        self.request_read(now)
+
+    def request_read(self, now: float) -> None:
+        """Ask for the unit's set (COEFF_READ), with a back-off while it does not answer."""
+        self._read_asks += 1
+        delay = min(self.cfg.push["ack_timeout_s"] * 2.0 ** max(0, self._read_asks - 1),
+                    self.READ_BACKOFF_MAX_S)
+        self._read_deadline = now + max(delay, 0.05)
+        self._send(CoeffRead())
+
+    def _reconcile(self, msg: CoeffReport) -> None:
+        try:
+            crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps) if msg.version else None
+            self.agreement = reconcile(self.store, self.hello.serial, msg.version, crc).as_dict()
+        except Exception as err:  # the store is advisory here: learning goes on
+            self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
+
+    def _store_push(self, version: int, push: dict[str, Any], now: float) -> None:
+        """Record a push result; a store that cannot take it keeps it in memory for later."""
+        try:
+            self.store.update_push(self.hello.serial, version, push)
+        except KeyError as err:  # no such record (a push of a set that was never stored): nothing to update
+            log.warning("store: push result of v%d not recorded: %s", version, err)
+        except Exception as err:  # the store must never take the session down with it
+            if self.store_error is None:
+                log.error("store unavailable: cannot record the push result of v%d (%s); kept in memory, "
+                          "retried every %g s", version, err, self.STORE_RETRY_S)
+            self.store_error = str(err)
+            self.unrecorded.append((version, push))
+            self._store_retry_at = now + self.STORE_RETRY_S
+
+    def _flush_unrecorded(self, now: float) -> None:
+        pending, self.unrecorded = self.unrecorded, []
+        for version, push in pending:
+            self._store_push(version, push, now)
+        if not self.unrecorded:
+            self.store_error = None
+            log.info("store available again: %d push result(s) recorded", len(pending))

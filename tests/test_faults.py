@@ -1,0 +1,206 @@
+"""Issue 8: the daemon never dies and never lies. Faults in the session (simulated time, the real
+estimator, store and unit logic), in the sequence tracker, and a few fast scenarios of the fault
+campaign (benchmarks/faults.py) against real processes."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from gyrocal.daemon.reconcile import close_abandoned
+from gyrocal.daemon.restart import SeqTracker
+from gyrocal.daemon.ring import SAMPLE_DTYPE
+from gyrocal.daemon.session import State
+from gyrocal.daemon.store import CalibrationRecord, CalibrationStore
+from gyrocal.errors import LinkError
+from gyrocal.protocol.messages import CoeffReport
+from gyrocal.protocol.serial_framing import FrameDecoder
+from gyrocal.protocol.termsets import SEED000_ID
+from gyrocal.sim.transports import nan_report_frame
+from gyrocal.sim.unit import Faults, NanReport
+from tests.daemon_harness import Harness
+
+
+def _pushed(h: Harness) -> bool:
+    return h.session is not None and bool(h.session.last_push)
+
+
+def _acked(h: Harness) -> bool:
+    return h.session is not None and h.session.last_push.get("status") == "acked"
+
+
+# ---- containment ------------------------------------------------------------------------------
+def test_the_link_failing_mid_push_becomes_a_record_not_an_exception(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path, faults=Faults(drop_acks=100))
+    h.switch_on()
+    h.run(90, until=lambda h: h.session is not None and h.session.state is State.PUSHING)
+    s = h.session
+    assert s is not None and s.state is State.PUSHING
+
+    def unplugged(msg: Any) -> None:
+        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
+
+    s.send = unplugged
+    h.run(30, until=_pushed)  # must not raise
+    assert s.last_push["status"] in ("link_down", "timeout")
+    assert s.state is not State.PUSHING and s.send_failures > 0
+    rec = h.store.get(4242, s.last_push["version"])
+    assert rec is not None and rec.push["status"] == s.last_push["status"]
+
+
+def test_a_nan_read_back_is_refused_counted_and_asked_again_and_learning_goes_on(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    s = h.session
+    assert s is not None
+    nan = ((float("nan"),) * 10,) * 3
+    s.on_message(CoeffReport(0, SEED000_ID, nan), h.now)  # a decoder that let it through
+    assert s.refused_reports == 1 and s.applied is None and "NaN" in s.reason
+    h.run(20)
+    assert s.applied is not None and s.learner.samples > 0
+
+
+def test_the_serial_decoder_drops_and_counts_a_nan_report() -> None:
+    dec = FrameDecoder()
+    assert dec.feed(nan_report_frame(NanReport(3, SEED000_ID, 10))) == []
+    assert dec.stats.bad_values == 1 and dec.stats.crc_errors == 0
+
+
+def test_an_unwritable_store_defers_the_push_and_it_goes_out_when_the_store_returns(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path)
+    real_add = h.store.add
+
+    def disk_full(rec: CalibrationRecord) -> CalibrationRecord:
+        raise OSError(28, "No space left on device")
+
+    h.store.add = disk_full  # type: ignore[method-assign]
+    h.switch_on()
+    h.run(60, until=lambda h: h.session is not None and h.session.store_error is not None)
+    s = h.session
+    assert s is not None and s.store_error is not None
+    assert "store unavailable" in s.status()["faults"]["store"]
+    assert h.unit.writes == {"acked": 0, "naked": 0, "dropped": 0, "acks_lost": 0}  # never an unknown set
+    h.store.add = real_add  # type: ignore[method-assign]
+    h.run(60, until=_acked)
+    assert _acked(h) and h.store.latest(4242).push["status"] == "acked"
+
+
+def test_a_refused_push_never_freezes_the_session(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(5)
+    s = h.session
+    assert s is not None
+    before = s.state
+    why = s.start_push(7, [f"t{k}" for k in range(22)], np.zeros((3, 22)), h.now)
+    assert why is not None and "22 terms" in why
+    assert s.state is before and s.push is None and s.last_push["status"] == "refused"
+    h.run(90, until=_acked)  # and the session still calibrates
+    assert _acked(h)
+
+
+def test_a_busy_storm_retries_the_same_version_with_back_off(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path, faults=Faults(nak_next=6))
+    h.switch_on()
+    h.run(180, until=_acked)
+    assert _acked(h)
+    versions = [r.version for r in h.store.history(4242)]
+    assert versions == [1], versions  # 6 NAKs, 2 failed rounds: still one version
+    assert h.unit.writes["naked"] == 6
+
+
+# ---- reconciliation -----------------------------------------------------------------------------
+def test_a_lost_ack_is_reconciled_from_the_read_back(tmp_path: Path) -> None:
+    h = Harness.make(tmp_path, faults=Faults(lose_ack=3))
+    h.switch_on()
+    h.run(90, until=_pushed)
+    s = h.session
+    assert s is not None and s.last_push["status"] == "timeout"
+    h.run(10, until=lambda h: h.store.get(4242, 1).push["status"] == "applied_ack_lost")
+    rec = h.store.get(4242, 1)
+    assert rec.push["status"] == "applied_ack_lost" and rec.push["history"][0]["status"] == "timeout"
+    assert h.store.latest(4242, acked_only=True).version == 1  # warm start and rollback may use it
+    assert s.status()["unit_set"]["agree"]
+
+
+def test_start_closes_abandoned_pushes_and_removes_leftover_temporaries(tmp_path: Path) -> None:
+    store = CalibrationStore(tmp_path)
+    rec = store.add(CalibrationRecord(serial=9, version=0, terms=["1"], coefficients_dps=[[0.0]] * 3,
+                                      uncertainty_dps=[[None]] * 3))
+    tmp = tmp_path / "units" / "9" / ".v000002.json.999999.1.tmp"
+    tmp.write_text("{half")
+    again = CalibrationStore(tmp_path)
+    assert again.clean_leftovers() == 1 and not tmp.exists()
+    assert close_abandoned(again) == 1
+    assert CalibrationStore(tmp_path).get(9, rec.version).push["status"] == "abandoned"
+
+
+# ---- restarts and outliers ----------------------------------------------------------------------
+def _block(seqs: list[int]) -> np.ndarray:
+    b = np.zeros(len(seqs), dtype=SAMPLE_DTYPE)
+    b["seq"] = np.asarray(seqs, dtype=np.int64) % (1 << 32)
+    return b
+
+
+def _kinds(out: list[tuple[str, np.ndarray]]) -> list[tuple[str, int]]:
+    return [(k, int(b.size)) for k, b in out]
+
+
+def test_one_far_sequence_number_is_an_outlier_not_a_restart() -> None:
+    t = SeqTracker()
+    assert _kinds(t.feed(_block(list(range(5000, 5100))))) == [("same", 100)]
+    out = t.feed(_block([5100, 5101, 0x40000000, 5102, 5103]))
+    assert _kinds(out) == [("same", 2), ("same", 2)] and t.outliers == 1 and t.restarts == 0
+
+
+def test_a_real_restart_needs_several_samples_of_evidence() -> None:
+    t = SeqTracker(confirm_n=32)
+    t.feed(_block(list(range(5000, 5100))))
+    assert t.feed(_block(list(range(0, 10)))) == [] and t.pending == 10  # held, not yet believed
+    out = t.feed(_block(list(range(10, 40))))
+    assert _kinds(out) == [("restart", 40)] and t.restarts == 1
+
+
+def test_a_hello_makes_the_next_jump_the_new_numbering_at_once() -> None:
+    t = SeqTracker()
+    t.feed(_block(list(range(5000, 5100))))
+    assert t.expect_restart() is None
+    assert _kinds(t.feed(_block(list(range(0, 5))))) == [("same", 5)] and t.restarts == 0
+    t2 = SeqTracker()
+    t2.feed(_block(list(range(5000, 5100))))
+    t2.feed(_block(list(range(0, 5))))  # seen before the HELLO was handled: held
+    held = t2.expect_restart()
+    assert held is not None and held.size == 5 and t2.restarts == 0
+
+
+def test_a_forward_jump_confirmed_is_a_gap_in_the_same_session() -> None:
+    t = SeqTracker(confirm_n=8)
+    t.feed(_block(list(range(100))))
+    out = t.feed(_block(list(range(50_000, 50_010))))
+    assert _kinds(out) == [("same", 10)] and t.gaps == 1 and t.restarts == 0
+
+
+# ---- the campaign, fast scenarios, real processes ----------------------------------------------
+def _campaign() -> Any:
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "faults.py"
+    spec = importlib.util.spec_from_file_location("gyrocal_faults_bench", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["start_without_unit", "refused_pushes", "unit_silent", "pty_replug",
+                                  "power_cycles"])
+def test_fault_campaign_fast_scenarios_on_a_pty(name: str) -> None:
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    res = _campaign().run_one(name, "pty")
+    assert res.up and res.agree and res.ok, res
