@@ -130,9 +130,10 @@ class Unit:
         self.applied = cset
         self._save_flash()
         self.link.send_ack(cset.version, self.applied.crc)
+        rms = self.drift_rms()
         self.log["acks"].append({"version": cset.version, "crc": self.applied.crc, "boot": self.boot,
                                  "seq_first": self.seq, "wall": time.time(),
-                                 "rms_after": self.drift_rms()["after"]})
+                                 "rms_before": rms["before"], "rms_after": rms["after"]})
         return None
 
     # --- samples --------------------------------------------------------------------------------
