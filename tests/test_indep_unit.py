@@ -215,7 +215,14 @@ def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
         link["can_node_id"] = node
     daemon = Daemon(tmp_path, link)
     try:
-        _check_push(unit, daemon, 1)
+        sessions = _check_push(unit, daemon, 1)["sessions"]
+        unit.power_cycle()  # one new session on CAN too (the HELLO pair, then an anchor first)
+        assert wait_for(lambda: daemon.status().get("unit", {}).get("boot_count") == 2, timeout_s=20,
+                        poll_s=0.5)
+        time.sleep(2.0)
+        st = daemon.status()
+        assert st["sessions"] == sessions + 1
+        assert st["link"]["errors"]["incomplete"] == 0 and st["link"]["errors"]["lost_samples"] == 0
     finally:
         daemon.stop()
         unit.stop()
