@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("gyrocal.model.cli_fit", "fit drift coefficients to a recorded log (docs/logformat.md)"),
     "analyze": ("gyrocal.analysis.cli_analyze", "what the simulation gets wrong (docs/analysis.md)"),
     "convert": ("gyrocal.analysis.convert", "turn a shipped real dataset into the log format"),
+    "replay": ("gyrocal.replay.cli_replay", "the daemon's engine on a recording, or a recording played live"),
     "status": ("gyrocal.daemon.cli_control", "state of a running daemon"),
     "recalibrate": ("gyrocal.daemon.cli_control", "start a new calibration session now"),
     "rollback": ("gyrocal.daemon.cli_control", "push an earlier calibration version"),

@@ -1,11 +1,16 @@
-"""Contract 1: the CSV log format shared by measured data and simulator recordings.
+"""The CSV log format shared by measured data and simulator recordings (docs/logformat.md).
 
 A log is a CSV file with a header row, optionally preceded by ``# key: value`` metadata lines.
-Columns and units (see ../shared/DESIGN.md):
+Columns and units:
 
 - ``t`` [s], ``wx wy wz`` [deg/s], ``ax ay az`` [g]: required;
 - ``temp`` [degC], ``session`` [switch-on index], ``ref_wx ref_wy ref_wz`` [deg/s]: optional;
 - any other numeric column: an extra covariate.
+
+A ``# units: gyro=deg/s accel=g temp=degC time=s`` line declares the units the file holds; the
+reader converts other declared units (rad/s, m/s^2, ms, ...) to these, and ``write_log`` always
+writes this line. ``read_log(path, rename=..., units=...)`` reads a CSV with other column names or
+units (``gyrocal fit --columns/--units``).
 
 Why a hand-written reader rather than ``numpy.genfromtxt``: a bad file must be rejected with the
 line and the column named, and rows holding NaN/Inf must be reported and skipped, never silently
@@ -15,6 +20,7 @@ turned into numbers an estimator would believe.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -25,6 +31,8 @@ import numpy as np
 from gyrocal.errors import LogFormatError
 
 REQUIRED = ("t", "wx", "wy", "wz", "ax", "ay", "az")
+CANONICAL_UNITS = "gyro=deg/s accel=g temp=degC time=s"
+"""The units every reader delivers and ``write_log`` declares."""
 OPTIONAL = ("temp", "session", "ref_wx", "ref_wy", "ref_wz")
 AXES = ("x", "y", "z")
 
@@ -35,12 +43,19 @@ class LogData:
 
     ``columns`` always holds the required columns and ``session`` (zeros when the file had none).
     ``skipped_rows`` lists the 1-based file line numbers of rows dropped for NaN/Inf values.
+    ``dropped`` counts every row or record a reader left out, by reason (``nonfinite``, ``crc``,
+    ``no_accel``, ...), so that each command can say what it did not use. ``warnings`` holds
+    what the reader noticed but could not decide (e.g. data that looks like SI units).
     """
 
     columns: dict[str, np.ndarray]
     metadata: dict[str, str] = field(default_factory=dict)
     skipped_rows: list[int] = field(default_factory=list)
     source: str = ""
+    dropped: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    data_rows: int = 0
+    """Data rows or records the source held, before anything was dropped."""
 
     def __len__(self) -> int:
         return int(self.columns["t"].shape[0])
@@ -74,7 +89,35 @@ class LogData:
             dict(self.metadata),
             list(self.skipped_rows),
             self.source,
+            dict(self.dropped),
+            list(self.warnings),
+            self.data_rows,
         )
+
+
+_ALIASES = {
+    "t": ("time", "timestamp", "time_s", "t_s", "sec", "seconds"),
+    "w": ("gyro_{a}", "gyr_{a}", "gyro{a}", "gyr{a}", "g{a}", "omega_{a}", "rate_{a}", "w_{a}", "{a}_gyro",
+          "angular_velocity_{a}", "angular_velocity.{a}", "gyr{A}", "Gyr{A}", "gyro_{A}"),
+    "a": ("acc_{a}", "accel_{a}", "acc{a}", "accel{a}", "a_{a}", "{a}_acc", "{a}_accel",
+          "linear_acceleration_{a}", "linear_acceleration.{a}", "acc{A}", "Acc{A}", "accel_{A}"),
+}
+
+
+def suggest_columns(missing: list[str], header: list[str]) -> str:
+    """A ``--columns`` guess for the missing columns from common names (gyro_x, acc_x, time, ...)."""
+    lower = {h.lower(): h for h in header}
+    out = []
+    for col in missing:
+        if col == "t":
+            names = _ALIASES["t"]
+        else:
+            kind, axis = col[0], col[1]
+            names = tuple(n.format(a=axis, A=axis.upper()) for n in _ALIASES[kind])
+        hit = next((lower[n.lower()] for n in names if n.lower() in lower), None)
+        if hit is not None:
+            out.append(f"{col}={hit}")
+    return ",".join(out)
 
 
 def _parse_float(text: str, path: str, line: int, column: str) -> float:
@@ -87,12 +130,60 @@ def _parse_float(text: str, path: str, line: int, column: str) -> float:
         ) from None
 
 
-def read_log(path: str | Path) -> LogData:
-    """Read a Contract 1 log, rejecting a malformed file and skipping non-finite rows.
+def read_header(fh: Iterable[str], name: str, rename: Mapping[str, str] | None = None,
+                ) -> tuple[dict[str, str], list[str], int]:
+    """Read the ``#`` metadata and the header row of an open CSV log, leaving ``fh`` at the first
+    data row; returns (metadata, header in our column names, the header's line number)."""
+    metadata: dict[str, str] = {}
+    lines = iter(enumerate(fh, start=1))
+    header: list[str] | None = None
+    header_line = 0
+    for lineno, raw in lines:
+        text = raw.strip()
+        if not text:
+            continue
+        if text.startswith("#"):
+            body = text[1:].strip()
+            if ":" in body:
+                key, value = body.split(":", 1)
+                metadata[key.strip()] = value.strip()
+            continue
+        header = [h.strip() for h in next(csv.reader([text]))]
+        header_line = lineno
+        break
+    if header is None:
+        raise LogFormatError(f"{name}: no header row; the first non-# line must name the columns")
+    if rename:
+        absent = [f"{ours}={theirs}" for ours, theirs in rename.items() if theirs not in header]
+        if absent:
+            raise LogFormatError(f"{name}:{header_line}: --columns {', '.join(absent)}: no such column "
+                                 f"in the header ({', '.join(header)})")
+        back = {theirs: ours for ours, theirs in rename.items()}
+        header = [back.get(h, h) for h in header]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        hint = suggest_columns(missing, header)
+        raise LogFormatError(
+            f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
+            f"header; a log needs {', '.join(REQUIRED)} (map other names with --columns"
+            + (f", perhaps --columns {hint}" if hint else "") + "; see docs/logformat.md)"
+        )
+    if len(set(header)) != len(header):
+        raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
+    return metadata, header, header_line
+
+
+def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
+             units: Mapping[str, str] | None = None) -> LogData:
+    """Read a CSV log, rejecting a malformed file and skipping non-finite rows.
 
     Raises LogFormatError naming the line and the column for: a missing required column, a
     non-numeric value, a row with the wrong number of fields, or time going backwards within a
     session. Rows with NaN or Inf are listed in ``skipped_rows`` and left out.
+
+    ``rename`` maps our column names to the file's (``{"wx": "gyro_x"}``); ``units`` maps a
+    quantity (gyro, accel, temp, time) to the unit the file holds, overriding its ``# units:`` line.
+    Values are converted to deg/s, g, degC and s (see gyrocal.readers.units).
     """
     p = Path(path)
     name = str(p)
@@ -100,58 +191,106 @@ def read_log(path: str | Path) -> LogData:
         fh = p.open(newline="", encoding="utf-8")
     except OSError as err:
         raise LogFormatError(f"{name}: cannot open the log ({err.strerror})") from err
-    metadata: dict[str, str] = {}
     with fh:
-        lines = iter(enumerate(fh, start=1))
-        header: list[str] | None = None
-        header_line = 0
-        for lineno, raw in lines:
-            text = raw.strip()
-            if not text:
-                continue
-            if text.startswith("#"):
-                body = text[1:].strip()
-                if ":" in body:
-                    key, value = body.split(":", 1)
-                    metadata[key.strip()] = value.strip()
-                continue
-            header = [h.strip() for h in next(csv.reader([text]))]
-            header_line = lineno
-            break
-        if header is None:
-            raise LogFormatError(f"{name}: no header row; the first non-# line must name the columns")
-        missing = [c for c in REQUIRED if c not in header]
-        if missing:
-            raise LogFormatError(
-                f"{name}:{header_line}: required column(s) {', '.join(missing)} missing from the "
-                f"header; a log needs {', '.join(REQUIRED)}"
-            )
-        if len(set(header)) != len(header):
-            raise LogFormatError(f"{name}:{header_line}: a column name appears twice in the header")
-        rows: list[list[float]] = []
-        skipped: list[int] = []
+        metadata, header, header_line = read_header(fh, name, rename)
         width = len(header)
-        for lineno, raw in lines:
-            text = raw.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = text.split(",")
-            if len(fields) != width:
-                raise LogFormatError(
-                    f"{name}:{lineno}: {len(fields)} fields where the header has {width}; "
-                    "every row needs one value per column"
-                )
-            values = [_parse_float(f, name, lineno, header[i]) for i, f in enumerate(fields)]
-            if not all(math.isfinite(v) for v in values):
-                skipped.append(lineno)
-                continue
-            rows.append(values)
-    table = np.asarray(rows, dtype=np.float64).reshape(-1, width)
+        rest = fh.read()
+    keep, ignored = _numeric_columns(rest, header)
+    table, skipped = _fast_body(rest, width, header_line, keep)
+    if table is None:  # comments, blank lines or a bad value: the slow path names the line and column
+        table, skipped = _slow_body(rest, width, header_line, header, name, keep)
+    header = [header[i] for i in keep]
+    n_rows = table.shape[0]
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
         columns["session"] = np.zeros(table.shape[0])
+    from gyrocal.readers.units import convert_columns, declared_units, looks_like_si
+
+    declared = declared_units(metadata.get("units", ""), f"{name}: '# units:' line")
+    declared.update(units or {})
+    convert_columns(columns, declared)
+    if declared:
+        metadata["units"] = CANONICAL_UNITS
     _check_time_order(columns, name)
-    return LogData(columns, metadata, skipped, name)
+    log = LogData(columns, metadata, skipped, name, {"nonfinite": len(skipped)} if skipped else {},
+                  data_rows=n_rows + len(skipped))
+    log.warnings.extend(f"{name}: column '{c}' is not numeric (first row: {v!r}); ignored"
+                        for c, v in ignored)
+    warning = looks_like_si(log)
+    if warning:
+        log.warnings.append(warning)
+    return log
+
+
+def _numeric_columns(rest: str, header: list[str]) -> tuple[list[int], list[tuple[str, str]]]:
+    """Indices of the columns to read, and the extra columns left out as text (a foreign CSV's
+    frame id or date), judged on the first data row. Named columns are always read, so a text
+    value there is an error naming its line."""
+    first = next((ln.strip() for ln in io.StringIO(rest) if ln.strip() and not ln.lstrip().startswith("#")),
+                 None)
+    if first is None:
+        return list(range(len(header))), []
+    fields = first.split(",")
+    if len(fields) != len(header):
+        return list(range(len(header))), []
+    named = set(REQUIRED) | set(OPTIONAL)
+    ignored: list[tuple[str, str]] = []
+    for h, f in zip(header, fields, strict=True):
+        if h in named:
+            continue
+        try:
+            float(f)
+        except ValueError:
+            ignored.append((h, f.strip()))
+    skip = {h for h, _ in ignored}
+    return [i for i, h in enumerate(header) if h not in skip], ignored
+
+
+def _fast_body(rest: str, width: int, header_line: int,
+               keep: list[int]) -> tuple[np.ndarray | None, list[int]]:
+    """numpy's C parser for a body of plain numeric rows (~10x the line-by-line loop), else None."""
+    body = rest.strip("\n")
+    if not body:
+        return np.zeros((0, len(keep))), []
+    if "#" in body or "\n\n" in body or "\r" in body:
+        return None, []
+    first = body.split("\n", 1)[0]
+    if first.count(",") != width - 1:
+        return None, []
+    try:
+        table = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2,
+                           usecols=keep if len(keep) != width else None)
+    except ValueError:
+        return None, []
+    if table.shape[1] != len(keep):
+        return None, []
+    bad = ~np.isfinite(table).all(axis=1)
+    if not bad.any():
+        return table, []
+    first = header_line + 1 + (len(rest) - len(rest.lstrip("\n")))  # the file line of the first row
+    return table[~bad], [int(first + i) for i in np.flatnonzero(bad)]
+
+
+def _slow_body(rest: str, width: int, header_line: int, header: list[str], name: str,
+               keep: list[int]) -> tuple[np.ndarray, list[int]]:
+    rows: list[list[float]] = []
+    skipped: list[int] = []
+    for lineno, raw in enumerate(rest.splitlines(), start=header_line + 1):
+        text = raw.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.split(",")
+        if len(fields) != width:
+            raise LogFormatError(
+                f"{name}:{lineno}: {len(fields)} fields where the header has {width}; "
+                "every row needs one value per column"
+            )
+        values = [_parse_float(fields[i], name, lineno, header[i]) for i in keep]
+        if not all(math.isfinite(v) for v in values):
+            skipped.append(lineno)
+            continue
+        rows.append(values)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, len(keep)), skipped
 
 
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:
@@ -172,11 +311,16 @@ def write_log(
     metadata: Mapping[str, str] | None = None,
     order: Iterable[str] | None = None,
 ) -> None:
-    """Write a Contract 1 log. Columns are written in ``order`` (default: contract order first)."""
+    """Write a log (docs/logformat.md). Columns are written in ``order`` (default: named ones first).
+
+    The ``# units:`` line is always written, with the canonical units the columns must hold.
+    """
     names = list(order) if order is not None else _default_order(columns)
     data = np.column_stack([np.asarray(columns[c], dtype=np.float64) for c in names])
+    meta = {k: v for k, v in (metadata or {}).items() if k != "units"}
+    meta["units"] = CANONICAL_UNITS
     with Path(path).open("w", encoding="utf-8", newline="") as fh:
-        for key, value in (metadata or {}).items():
+        for key, value in meta.items():
             fh.write(f"# {key}: {value}\n")
         fh.write(",".join(names) + "\n")
         np.savetxt(fh, data, delimiter=",", fmt="%.10g")

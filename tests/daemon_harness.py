@@ -16,7 +16,7 @@ from gyrocal.daemon.config import DaemonConfig, load_config
 from gyrocal.daemon.learner import make_learner
 from gyrocal.daemon.ring import SAMPLE_DTYPE
 from gyrocal.daemon.session import Session
-from gyrocal.daemon.stillness import StillConfig, StillDetector
+from gyrocal.daemon.stillness import StillDetector
 from gyrocal.daemon.store import CalibrationStore
 from gyrocal.sim.schedule import tumble
 from gyrocal.sim.truth import TruthModel
@@ -61,8 +61,9 @@ class Harness:
         if not hello:
             return
         prior = self.store.latest(hello[0].serial, acked_only=True)
-        self.detector = StillDetector(StillConfig(int(0.2 * RATE_HZ)))
-        self.session = Session(self.cfg, hello[0], make_learner(self.cfg, prior), self.store, self.send,
+        self.detector = StillDetector.for_rate(RATE_HZ, self.cfg.still)
+        learner = make_learner(self.cfg, prior, RATE_HZ)
+        self.session = Session(self.cfg, hello[0], learner, self.store, self.send,
                                self.now, RATE_HZ, None if prior is None else prior.version)
 
     def run(self, seconds: float, until: Any = None) -> None:

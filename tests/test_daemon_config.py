@@ -26,7 +26,7 @@ def test_default_and_example_configs_load() -> None:
     [
         ("link: {kind: serial, url: /dev/x, baud: 9600}\n", ["link.baud", "takes kind, url, baudrate"]),
         ("link: {kind: usb, url: /dev/x}\n", ["link.kind", "write `serial` or `can`"]),
-        ("link: {url: /dev/x}\nestimator: {method: kalman}\n", ["estimator.method", "rls, nlms or lms"]),
+        ("link: {url: /dev/x}\nestimator: {method: kalman}\n", ["estimator.method", "rls, nlms, lms or kf"]),
         ("link: {url: /dev/x}\npush: {retries: '3'}\n", ["push.retries", "'3'"]),
         ("link: {url: /dev/x}\nestimator: {terms: [gx, 'gx+gy']}\n", ["estimator.terms", "gx+gy"]),
         ("link: {url: /dev/x}\nvalidation: {min_improvement: 1.5}\n", ["validation.min_improvement"]),
@@ -122,6 +122,14 @@ _BAD_VALUES: dict[str, list[object]] = {
     "still.window_s": [0, -0.2],
     "still.gyro_std_dps": [0, -0.05],
     "still.accel_tol_g": [0, 2],
+    "still.k_std": [1, 0.5],
+    "still.margin_s": [-0.1],
+    "still.min_run_s": [0, -1],
+    "still.learn_s": [0],
+    "still.memory_s": [0],
+    "link.can_node_id": [-1, 16],
+    "push.target_drift_dph": [0, -1],
+    "push.min_cut": [1, 0.5],
 }
 
 

@@ -31,7 +31,7 @@ PY = [sys.executable, "-m", "gyrocal.cli"]
 
 
 def _schedule(tmp: Path) -> Path:
-    s = tumble(0.8, 0.25)
+    s = tumble(1.2, 0.25)  # the still rule keeps a dwell from 1.1 s on (model/still.py)
     path = tmp / "schedule.yaml"
     path.write_text(yaml.safe_dump({"dwell_s": s.dwell_s, "move_s": s.move_s, "poses": s.poses_g.tolist()}))
     return path

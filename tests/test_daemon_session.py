@@ -92,8 +92,9 @@ def test_validation_refuses_a_set_that_does_not_improve_the_held_out_residual(tm
     h.run(60)
     s = h.session
     assert s is not None and not s.last_push
-    assert s.last_validation.get("passed") is False
-    assert "not pushing" in s.reason or "validation failed" in s.reason
+    # refused by the push gate (the set would remove less than it risks) or by validation
+    assert s.last_validation.get("passed") is not True
+    assert "not pushing" in s.reason or "validation failed" in s.reason or "the set removes" in s.reason
 
 
 def test_no_push_before_the_unit_has_visited_enough_orientations(tmp_path: Path) -> None:
@@ -102,7 +103,7 @@ def test_no_push_before_the_unit_has_visited_enough_orientations(tmp_path: Path)
     h.run(10)  # about six poses of 18
     s = h.session
     assert s is not None and not s.last_push
-    assert s.state is State.COLLECTING and "rank" in s.reason
+    assert s.state is State.COLLECTING and "rank" in s.learner.converged[1]
 
 
 def test_switch_on_in_a_vehicle_at_one_pose_re_estimates_the_bias_and_keeps_the_rest(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ def test_log_round_trip_keeps_values_and_metadata(tmp_path: Path) -> None:
     cols = {k: np.linspace(0, 1, 5) for k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp")}
     write_log(tmp_path / "a.csv", cols, {"serial": "42"})
     log = read_log(tmp_path / "a.csv")
-    assert log.metadata == {"serial": "42"}
+    assert log.metadata == {"serial": "42", "units": "gyro=deg/s accel=g temp=degC time=s"}
     np.testing.assert_allclose(log["temp"], cols["temp"])
     assert np.all(log["session"] == 0)
 

@@ -47,7 +47,7 @@ def test_quantisation_puts_the_output_on_the_lsb_grid() -> None:
 
 def test_gauss_markov_noise_has_its_std_and_correlation() -> None:
     e = Effects(gm_dps=np.full(3, 0.01), gm_tau_s=0.2)
-    c = SessionStream(TruthModel(noise_dps=0.0, effects=e), still(), 100.0, seed=2, boot=0).chunk(200_000)
+    c = SessionStream(TruthModel(noise_dps=0.0, effects=e), still(), 100.0, seed=2, boot=0).chunk(60_000)
     x = c["wx"] - c["drift_wx"]
     assert np.std(x) == pytest.approx(0.01, rel=0.05)
     r1 = np.corrcoef(x[:-1], x[1:])[0, 1]
@@ -58,7 +58,7 @@ def test_gauss_markov_noise_has_its_std_and_correlation() -> None:
 def test_lowpass_lowers_the_sample_std_but_keeps_the_arw() -> None:
     fs, sigma = 100.0, 0.01
     m = TruthModel(noise_dps=sigma, effects=Effects(lowpass_hz=5.0))
-    c = SessionStream(m, still(), fs, seed=3, boot=0).chunk(200_000)
+    c = SessionStream(m, still(), fs, seed=3, boot=0).chunk(60_000)
     x = c["wy"] - c["drift_wy"]
     a = 1 - np.exp(-2 * np.pi * 5.0 / fs)
     assert np.std(x) == pytest.approx(sigma * np.sqrt(a / (2 - a)), rel=0.03)
@@ -77,6 +77,7 @@ def test_flicker_components_give_a_flat_floor_analytically() -> None:
         flicker_components((5.0, 1.0))
 
 
+@pytest.mark.slow
 def test_simulated_bias_instability_reads_back_from_the_allan_floor() -> None:
     fs, b = 10.0, 30 * DPH
     e = Effects(bias_instability_dps=np.full(3, b), flicker_band_s=(1.0, 300.0))

@@ -94,4 +94,4 @@ COMP_WORDS=(gyrocal sim --link ""); COMP_CWORD=3; _gyrocal; echo "${{COMPREPLY[*
 """
     out = subprocess.run([bash, "-c", probe], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.splitlines() == ["status", "--watch", "pty can"]
+    assert out.stdout.splitlines() == ["status", "--watch", "pty can mavlink"]

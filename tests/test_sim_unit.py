@@ -63,7 +63,8 @@ def test_unit_applies_true_coefficients_and_output_drift_drops_to_the_bias() -> 
     chunk = u.render(400)  # the sent output equals raw minus compensation, sample by sample
     c = chunk.columns
     np.testing.assert_allclose(c["wx"] + c["comp_wx"] - c["ref_wx"] - c["drift_wx"], 0.0, atol=0.02)
-    gravity_part = TruthModel().gravity_drift_dps(np.column_stack([c["ax"], c["ay"], c["az"]]))
+    a = np.column_stack([c["ax"], c["ay"], c["az"]])  # the unit's gravity terms use a/|a| (protocol.md)
+    gravity_part = TruthModel().gravity_drift_dps(a / np.linalg.norm(a, axis=1)[:, None])
     np.testing.assert_allclose(c["comp_wy"], gravity_part[:, 1], atol=1e-12)
 
 

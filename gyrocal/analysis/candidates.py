@@ -18,8 +18,6 @@ from gyrocal.model.terms import TermSpec
 
 WARMUP_TAUS_S = (5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
 """Grid of warm-up time constants [s]; the grid is cut at the longest session."""
-RW_PRIOR_S = 0.5
-"""Weight of the random-walk smoothness prior, in seconds of data a knot step is worth."""
 
 
 @dataclass
@@ -192,31 +190,10 @@ def scale_factor(prob: Problem) -> Candidate | None:
 
 
 def random_walk(prob: Problem) -> Candidate:
-    """A wandering bias: piecewise-linear in time with one knot per block (a random-walk smoother).
-
-    With knots at the block edges, a held-out block's bias is interpolated from its neighbours,
-    which is what a Kalman smoother of a random-walk state does between measurements.
-    """
-    knot = prob.block_s
-    cols, diffs = [], []
-    t_on, sess = prob.cols["t_on"], prob.usable.session
-    for s in np.unique(sess):
-        m = sess == s
-        for j in range(int(np.ceil(t_on[m].max() / knot)) + 1):
-            c = np.zeros(prob.n)
-            c[m] = np.maximum(0.0, 1.0 - np.abs(t_on[m] - j * knot) / knot)
-            if j > 0:
-                diffs.append((len(cols) - 1, len(cols)))
-            cols.append(c)
-    x = np.column_stack(cols)
-    # smoothness: a knot-to-knot step costs as much as RW_PRIOR_S of samples would; knots with
-    # little data follow their neighbours (interpolation), knots with much data are barely held
-    pen = np.zeros((len(diffs), x.shape[1]))
-    w = np.sqrt(RW_PRIOR_S * prob.rate_hz)
-    for r, (i, j) in enumerate(diffs):
-        pen[r, i], pen[r, j] = -w, w
-    return Candidate("random_walk", [x] * prob.n_folds, x, [], {"knot_s": knot}, covariate="t",
-                     n_params=x.shape[1], penalty=pen)
+    """A wandering bias: no regression columns; the slow states of the error model (walk, flicker
+    bank), tracked by a Kalman smoother (``lrtest.heldout_walk``), seed 003's bias state."""
+    empty = np.zeros((prob.n, 0))
+    return Candidate("random_walk", [empty] * prob.n_folds, empty, [], {}, covariate="t")
 
 
 BUILDERS = (temperature, temperature_rate, warmup, periodic, scale_factor, random_walk)

@@ -1,11 +1,17 @@
-"""Name the cause: forward selection of candidate causes on held-out data, per axis.
+"""Name the cause: forward selection of candidate causes, per axis, tested against the wander.
 
-Per axis, starting from the baseline, the candidate that most reduces the held-out, tau-averaged
-residual variance is added, as long as it passes the significance rule of ``holdout`` (the minimum
-share applies to the variance the model so far leaves, so a small second effect is still found). The random
-walk is flexible enough to mimic any slow effect, so (DESIGN.md) it is chosen only when no covariate
-cause (temperature, its rate, warm-up) explains about as well (``RW_COVARIATE_SHARE``,
-``RW_LEFTOVER_RATIO``) with its one or two parameters against the walk's one per knot.
+Per axis, starting from the baseline, the regression cause (temperature, its rate, warm-up,
+periodic, scale factor) with the largest held-out share is added as long as one passes the
+likelihood-ratio test of ``lrtest`` at ``ALPHA`` (under the axis' error model, which already holds
+the walk and the flicker, so covariates are weighed jointly against the wander, never one at a time)
+and explains at least ``MIN_FRACTION_OF_BASELINE`` of the baseline's held-out variance.
+
+Then the walk: the slow states of the error model (random walk, flicker bank), tracked by a Kalman
+smoother on the training folds, are named ``random_walk`` when they lower the held-out error of the
+model so far (one-sided t-test over held-out blocks at ``ALPHA``, at least ``MIN_FRACTION`` of
+what is left): a wander that does lower the held-out error is ``random_walk``; one that does not is
+noise (``bias_instability``, judged by fidelity in ``noisecauses``). Because the covariates are
+chosen first, temperature + temperature_rate no longer come out as random_walk + temperature.
 Findings merge the axes on which a cause was selected and are ranked by the share of the baseline
 held-out variance they explain (their incremental reduction, so the shares add up).
 """
@@ -17,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gyrocal.analysis.baseline import Problem
-from gyrocal.analysis.candidates import COVARIATE_CAUSES, Candidate
+from gyrocal.analysis.baseline import Problem, lstsq
+from gyrocal.analysis.candidates import Candidate
 from gyrocal.analysis.holdout import (
     ALPHA,
     MIN_FRACTION,
@@ -26,15 +32,12 @@ from gyrocal.analysis.holdout import (
     compare,
     heldout_residual,
     moving_average,
-    penalized_lstsq,
     tau_window,
 )
+from gyrocal.analysis.lrtest import AxisLR, build_axis_lr, heldout_walk, smooth_full
+from gyrocal.analysis.noisemodel import NoiseModel
 from gyrocal.analysis.segments import AXES
 
-RW_COVARIATE_SHARE = 0.8
-RW_LEFTOVER_RATIO = 2.0
-"""A covariate explains the wander "about as well" as the random walk when it explains at least
-RW_COVARIATE_SHARE of what the walk explains and leaves at most RW_LEFTOVER_RATIO times its leftover."""
 MAX_CAUSES_PER_AXIS = 3
 
 
@@ -54,6 +57,7 @@ class AxisResult:
     first: dict[str, dict] = field(default_factory=dict)  # every candidate against the baseline
     r_base: np.ndarray | None = None
     r_ext: np.ndarray | None = None
+    lr: AxisLR | None = None
 
 
 def _ms(prob: Problem, r: np.ndarray, tau_s: float) -> float:
@@ -64,13 +68,16 @@ def _ms(prob: Problem, r: np.ndarray, tau_s: float) -> float:
 def select_axis(
     prob: Problem, axis: int, cands: list[Candidate], tau_s: float,
     progress: Callable[[str], None] | None = None, cache: dict | None = None,
+    lr: AxisLR | None = None,
 ) -> AxisResult:
     """Forward selection of causes on one axis (see the module docstring for the rule).
 
     ``cache`` maps a tuple of cause names to held-out residuals (M, 3), shared between axes: the
-    models are the same on every axis until the axes' selections differ.
+    models are the same on every axis until the axes' selections differ. ``lr`` is the axis'
+    likelihood-ratio test (built here when not given).
     """
     cache = {} if cache is None else cache
+    lr = lr if lr is not None else build_axis_lr(prob, cands, axis)
 
     def heldout(models: list[Candidate]) -> np.ndarray:
         key = tuple(c.cause for c in models)
@@ -83,45 +90,66 @@ def select_axis(
     res.r_base = heldout([])
     chosen: list[Candidate] = []
     r_cur = res.r_base
+    regs = [c for c in cands if c.cause in lr.cols]
+    first: dict[str, dict] = {}
     while len(chosen) < MAX_CAUSES_PER_AXIS:
         scored = []
-        for c in cands:
+        for c in regs:
             if c in chosen:
                 continue
             r_new = heldout([*chosen, c])
             tau_c = c.tau_s if c.tau_s is not None else tau_s
-            cmp = compare(prob, r_cur, r_new, tau_c)
-            frac = cmp.reduction / _ms(prob, res.r_base, tau_c)
-            of_left = cmp.reduction / _ms(prob, r_cur, tau_c)
-            scored.append((c, frac, cmp, r_new, of_left))
+            reduction = _ms(prob, r_cur, tau_c) - _ms(prob, r_new, tau_c)
+            frac = reduction / _ms(prob, res.r_base, tau_c)
+            d, p = lr.test([s.cause for s in chosen], c.cause)
+            scored.append((c, frac, p, r_new, d))
         if not chosen:
-            res.first = {s[0].cause: {"explained_fraction": round(float(s[1]), 4), "p_value": s[2].p_value}
-                         for s in scored}
-        sig = [s for s in scored if s[2].p_value < ALPHA and s[4] >= MIN_FRACTION
-               and s[1] >= MIN_FRACTION_OF_BASELINE]
+            first = {s[0].cause: {"explained_fraction": round(float(s[1]), 4), "p_value": s[2],
+                                  "lr": round(s[4], 2)} for s in scored}
+        sig = [s for s in scored if s[2] < ALPHA and s[1] >= MIN_FRACTION_OF_BASELINE]
         if not sig:
             break
-        best = max(sig, key=lambda s: s[1])
-        if best[0].cause == "random_walk":
-            alt = [s for s in scored if s[0].cause in COVARIATE_CAUSES and s[2].p_value < ALPHA
-                   and s[1] >= RW_COVARIATE_SHARE * best[1]
-                   and 1.0 - s[1] <= RW_LEFTOVER_RATIO * (1.0 - best[1])]
-            if alt:
-                best = max(alt, key=lambda s: s[1])
-        c, frac, cmp, r_new, _ = best
+        c, frac, p, r_new, _ = max(sig, key=lambda s: s[1])
         chosen.append(c)
-        res.steps.append(Step(c.cause, float(frac), cmp.p_value, cmp.blocks))
+        res.steps.append(Step(c.cause, float(frac), p, int(prob.block.max()) + 1))
         r_cur = r_new
         if progress:
-            progress(f"axis {AXES[axis]}: {c.cause} explains {frac:.1%} (p={cmp.p_value:.2g})")
+            progress(f"axis {AXES[axis]}: {c.cause} explains {frac:.1%} (p={p:.2g})")
+    walk = next((c for c in cands if c.cause == "random_walk"), None)
+    model = lr.model_for([c.cause for c in chosen])
+    if walk is not None and (model.slow or model.walk_q > 0):
+        r_new = heldout_walk(prob, model, axis, chosen)
+        cmp = compare(prob, r_cur, r_new, tau_s)
+        frac = cmp.reduction / _ms(prob, res.r_base, tau_s)
+        of_left = cmp.reduction / _ms(prob, r_cur, tau_s)
+        first.setdefault("random_walk", {"explained_fraction": round(float(frac), 4),
+                                         "p_value": cmp.p_value})
+        if walk is not None and cmp.p_value < ALPHA and of_left >= MIN_FRACTION \
+                and frac >= MIN_FRACTION_OF_BASELINE:
+            chosen.append(walk)
+            res.steps.append(Step("random_walk", float(frac), cmp.p_value, cmp.blocks))
+            r_cur = r_new
+            if progress:
+                progress(f"axis {AXES[axis]}: random_walk explains {frac:.1%} (p={cmp.p_value:.2g})")
+    res.first = first
     res.r_ext = r_cur
+    res.lr = lr
     return res
 
 
-def fit_full(prob: Problem, axis: int, chosen: list[Candidate]) -> tuple[np.ndarray, np.ndarray]:
-    """Fit baseline + chosen causes on all used samples: (coefficients, in-sample residual)."""
-    x = np.column_stack([prob.base, *(c.full for c in chosen)])
-    beta = penalized_lstsq(x, prob.y[:, axis], [c.full for c in chosen], [c.penalty for c in chosen])
+def fit_full(prob: Problem, axis: int, chosen: list[Candidate], lr: AxisLR | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Fit baseline + chosen causes on all used samples: (coefficients, in-sample residual).
+
+    With ``random_walk`` chosen, the coefficients are GLS under the axis' error model and the
+    slow states (Kalman smoother) are removed from the residual too.
+    """
+    regs = [c for c in chosen if c.cause != "random_walk"]
+    x = np.column_stack([prob.base, *(c.full for c in regs)])
+    if lr is not None and len(regs) < len(chosen):
+        beta, slow = smooth_full(prob, lr.model_for([c.cause for c in regs]), axis, x)
+        return beta, prob.y[:, axis] - x @ beta - slow
+    beta, _ = lstsq(x, prob.y[:, axis])
     return beta, prob.y[:, axis] - x @ beta
 
 
@@ -129,6 +157,8 @@ def cause_coefficients(prob: Problem, chosen: list[Candidate], beta: np.ndarray)
     """Slice the coefficient vector into each chosen cause's coefficients."""
     out, k = {}, prob.base.shape[1]
     for c in chosen:
+        if c.cause == "random_walk":
+            continue
         p = c.full.shape[1]
         out[c.cause] = beta[k : k + p]
         k += p
@@ -154,18 +184,11 @@ def cause_params(prob: Problem, cand: Candidate, coefs: dict[str, np.ndarray]) -
     elif cand.cause == "scale_factor":
         p["scale_factor"] = {a: float(b[AXES.index(a)]) for a, b in coefs.items()}
         p["cross_coupling"] = {a: [float(v) for v in b] for a, b in coefs.items()}
-    elif cand.cause == "random_walk":
-        knot = cand.info["knot_s"]
-        p["dps_per_sqrt_s"] = {a: _walk_intensity(prob, b, knot) for a, b in coefs.items()}
     return p
 
 
-def _walk_intensity(prob: Problem, knots: np.ndarray, knot_s: float) -> float:
-    """Random-walk intensity [deg/s/sqrt(s)] from the knot values' increments within sessions."""
-    d, k = [], 0
-    t_on, sess = prob.cols["t_on"], prob.usable.session
-    for s in np.unique(sess):
-        nk = int(np.ceil(t_on[sess == s].max() / knot_s)) + 1
-        d.extend(np.diff(knots[k : k + nk]).tolist())
-        k += nk
-    return float(np.sqrt(np.mean(np.square(d)) / knot_s)) if d else 0.0
+def walk_params(models: dict[str, NoiseModel]) -> dict:
+    """Random-walk finding's parameters from each axis' error model: the walk and the flicker bank."""
+    return {"dps_per_sqrt_s": {a: float(np.sqrt(m.walk_q)) for a, m in models.items()},
+            "flicker_bank": {a: [{"tau_s": t, "sd_dps": float(np.sqrt(v))} for t, v in m.slow]
+                             for a, m in models.items()}}

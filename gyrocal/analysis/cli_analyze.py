@@ -1,4 +1,7 @@
-"""``gyrocal analyze LOG.csv --json OUT.json [--report DIR]`` (Contract 2).
+"""``gyrocal analyze LOG --json OUT.json [--report DIR]``: what the simulation gets wrong.
+
+LOG is any format of docs/logformat.md; what the reader dropped is said on stderr and in the
+JSON's ``input`` object (rows in the source, rows used, dropped by reason, warnings).
 
 Exits 0 whenever the analysis ran, whatever it found. Progress goes to stderr (the JSON may go to
 stdout with ``--json -``). The extended model spec is written next to the JSON as
@@ -17,16 +20,18 @@ from pathlib import Path
 from gyrocal.analysis.engine import analyze
 from gyrocal.analysis.extend import write_spec
 from gyrocal.errors import GyrocalError
-from gyrocal.logformat import read_log
+from gyrocal.model.cli_fit import no_data_error
+from gyrocal.readers import accounting, add_arguments, read_from_args
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", help="a Contract 1 log (CSV); see `gyrocal convert` for real datasets")
-    parser.add_argument("--json", metavar="OUT.json", help="write the Contract 2 result here ('-' = stdout)")
+    parser.add_argument("log", help="a log: CSV, .asc/.blf, .ulg, .bin, ... (docs/logformat.md)")
+    parser.add_argument("--json", metavar="OUT.json", help="write the result here ('-' = stdout)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG plots into DIR")
     parser.add_argument("--spec", metavar="PATH", help="where to write the extended model spec (YAML)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated noise (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    add_arguments(parser)
 
 
 def _clean(x):
@@ -47,11 +52,17 @@ def main(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"analyze [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    log = read_log(args.log)
-    if log.skipped_rows:
-        say(f"skipped {len(log.skipped_rows)} rows holding NaN/Inf (first at line {log.skipped_rows[0]})")
+    log = read_from_args(args.log, args)
+    for w in log.warnings:
+        print(f"gyrocal: warning: {w}", file=sys.stderr)
+    if log.dropped:
+        first = f" (first at line {log.skipped_rows[0]})" if log.skipped_rows else ""
+        say("dropped " + ", ".join(f"{v} {k}" for k, v in log.dropped.items()) + first)
+    if len(log) == 0:
+        raise no_data_error(log, args.log)
     res = analyze(log, progress=say, seed=args.seed)
     out = _clean(res.result)
+    out["input"] = accounting(log)
     spec_path = args.spec or (str(Path(args.json).with_suffix(".terms.yaml"))
                               if args.json and args.json != "-" else None)
     if spec_path:

@@ -3,8 +3,9 @@
 The spec file is YAML ``{terms: [...]}`` (the Contract 3 term names, loadable by ``gyrocal fit
 --terms-file`` and the daemon). A random-walk finding is not a regression term: it is written as a
 ``random_walk`` block (the bias state's intensity per axis [deg/s/sqrt(s)]) for an estimator that
-tracks the bias with a Kalman filter or with forgetting (seed 003). Extra keys are information for
-people; loaders read ``terms``.
+tracks the bias with a Kalman filter or with forgetting (seed 003); ``noise_model`` gives each axis'
+fitted error model (white, colour and flicker Gauss-Markov members, walk) for a truth model or a
+bias-state filter. Extra keys are information for people; loaders read ``terms``.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ def write_spec(path: str | Path, result: dict, source: str = "") -> Path:
                      for f in result["findings"]}
     if result["extended"].get("random_walk"):
         doc["random_walk"] = _plain(result["extended"]["random_walk"])
+    if result.get("noise_model"):  # per axis: white, colour and flicker bank (tau, SD), walk, ARW
+        doc["noise_model"] = _plain(result["noise_model"])
     doc["source"] = f"gyrocal analyze {source}".strip()
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)

@@ -106,6 +106,43 @@ def generate(
     return {k: cols[k] for k in keep}, h
 
 
+BACKGROUNDS = ("white", "coloured", "flicker", "quantised", "real_like")
+
+
+def add_background(cols: dict[str, np.ndarray], kind: str, seed: int, level_dps: float = 0.002
+                   ) -> dict[str, np.ndarray]:
+    """Add a non-white noise background to the gyro columns (a null for the false-alarm rate).
+
+    coloured: a first-order low-pass (Gauss-Markov, 2-sample correlation time) of the white noise
+    level, as a sensor DLPF makes it; flicker: a bank of Gauss-Markov processes at 3, 30 and 300 s
+    (a bias-instability floor of about the white level at 1 s); quantised: the output rounded to
+    a step of 1.5 x the white level (a 16-bit MEMS at its finest range); real_like: all three.
+    """
+    from gyrocal.analysis.noisemodel import NoiseModel
+
+    out = dict(cols)
+    t, session = cols["t"], cols["session"]
+    rate = 1.0 / float(np.median(np.diff(t)))
+    rng = np.random.default_rng([seed, 0xBA6])
+    gm: list[tuple[float, float]] = []
+    if kind in ("coloured", "real_like"):
+        gm.append((2.0 / rate, (1.5 * level_dps) ** 2))
+    if kind in ("flicker", "real_like"):
+        gm += [(3.0, (0.4 * level_dps) ** 2), (30.0, (0.4 * level_dps) ** 2), (300.0, (0.4 * level_dps) ** 2)]
+    model = NoiseModel(rate, 0.0, gm, 0.0)
+    for a in AXES:
+        w = out[f"w{a}"].copy()
+        if gm:
+            for s in np.unique(session):
+                m = session == s
+                w[m] += model.simulate(int(m.sum()), rng)
+        if kind in ("quantised", "real_like"):
+            step = 1.5 * level_dps
+            w = np.round(w / step) * step
+        out[f"w{a}"] = w
+    return out
+
+
 def write_hidden_log(path: str | Path, seed: int, **kwargs) -> Hidden:
     """Generate with ``generate`` and write a Contract 1 log; returns what was hidden."""
     cols, h = generate(seed, **kwargs)
@@ -138,3 +175,46 @@ def inject(columns: Mapping[str, np.ndarray], cause: str, amplitude_dps: float, 
     for a in axes:
         out[f"w{a}"] = out[f"w{a}"] + sig
     return out
+
+
+@dataclass
+class HardCase:
+    """One log of the harder hidden set: causes, size in units of the per-sample noise, background."""
+
+    seed: int
+    causes: list[str]
+    size_sigma: float
+    background: str = "white"
+
+
+HARD_SET: tuple[HardCase, ...] = (
+    *(HardCase(300 + i, [c], s) for i, (c, s) in enumerate(zip(
+        ("temperature", "temperature_rate", "warmup", "periodic", "random_walk", "scale_factor"),
+        (0.1, 0.2, 0.3, 0.1, 0.2, 0.3), strict=True))),
+    HardCase(310, ["temperature", "temperature_rate"], 0.3),
+    HardCase(311, ["periodic", "warmup"], 0.2),
+    HardCase(312, ["warmup"], 0.3, "flicker"),
+    HardCase(313, ["periodic"], 0.2, "real_like"),
+    HardCase(314, ["temperature"], 0.3, "quantised"),
+    HardCase(320, [], 0.0, "coloured"),
+    HardCase(321, [], 0.0, "quantised"),
+    HardCase(322, [], 0.0, "flicker"),
+    HardCase(323, [], 0.0, "real_like"),
+)
+"""Effects at 0.1-0.3 sigma, confounded pairs, non-white backgrounds and nulls, on long sessions
+(2 x 600 s at 25 Hz); sigma = the truth model's white noise per sample (0.002 deg/s)."""
+
+
+def generate_hard(case: HardCase, session_s: float = 600.0, n_sessions: int = 2
+                  ) -> tuple[dict[str, np.ndarray], Hidden]:
+    """The columns of one hard case: each effect rescaled so its size (``Hidden.size``) is
+    ``size_sigma`` x the white noise per sample, then the background added."""
+    sigma = TruthModel().noise_dps
+    scales = None
+    if case.causes:
+        _, h = generate(case.seed, case.causes, n_sessions=n_sessions, session_s=session_s)
+        scales = [case.size_sigma * sigma / h.size[c] for c in case.causes]
+    cols, h = generate(case.seed, case.causes, n_sessions=n_sessions, session_s=session_s, scales=scales)
+    if case.background != "white":
+        cols = add_background(cols, case.background, case.seed, sigma)
+    return cols, h

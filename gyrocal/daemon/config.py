@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from gyrocal.errors import ConfigError
+from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 
@@ -30,7 +31,9 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "baudrate": ((int,), 921600, "write a baud rate such as 921600"),
         "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}; "
                 "interface/channel left out come from python-can's config (CAN_INTERFACE, ~/.canrc)"),
+        "mavlink": ((dict,), {}, "write MAVLink link options, e.g. {autopilot: px4} (docs/mavlink.md)"),
         "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
+        "can_node_id": ((int,), 0, "write the unit's CAN node id, an integer 0 to 15"),
     },
     "virtual_unit": {
         "enabled": ((bool,), False, "write true or false"),
@@ -42,7 +45,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "extra_args": ((list,), [], "write a list of extra `gyrocal sim` arguments"),
     },
     "estimator": {
-        "method": ((str,), "rls", "write rls, nlms or lms"),
+        "method": ((str,), "rls", "write rls, nlms, lms or kf"),
         "terms": ((str, list), "seed000", "write `seed000`, a list of term names, or a YAML terms file"),
         "forgetting": ((int, float), 1.0, "write a forgetting factor in (0.9, 1]"),
         "step": ((int, float), 0.5, "write an NLMS/LMS step size in (0, 2)"),
@@ -57,6 +60,11 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "push": {
         "ack_timeout_s": ((int, float), 1.0, "write a timeout in seconds"),
         "retries": ((int,), 3, "write the number of attempts, >= 1"),
+        "target_drift_dph": ((int, float), 0.2,
+                             "write the predicted drift RMS [deg/h] below which a set is pushed"),
+        "min_cut": ((int, float), 20.0,
+                    "write the factor by which the predicted drift left must undercut the drift removed"),
+        "bias_first": ((bool,), True, "write true or false: push a bias-only set first after a switch-on"),
     },
     "monitor": {
         "alarm_ratio": ((int, float), 3.0, "write a ratio > 1"),
@@ -64,9 +72,15 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "alarm_floor_dps": ((int, float), 0.002, "write the smallest residual [deg/s] that can alarm"),
     },
     "still": {
-        "window_s": ((int, float), 0.2, "write the still-detector window in seconds"),
-        "gyro_std_dps": ((int, float), 0.05, "write the gyro std [deg/s] below which the unit is still"),
-        "accel_tol_g": ((int, float), 0.05, "write the tolerance [g] on |a| = 1 g when still"),
+        "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
+        "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
+        "margin_s": ((int, float), 0.1, "write the seconds cut from each end of a still stretch"),
+        "min_run_s": ((int, float), 0.5, "write the shortest still stretch kept, in seconds"),
+        "learn_s": ((int, float), 1.0, "write the seconds after switch-on that teach the noise level"),
+        "memory_s": ((int, float), 120.0, "write the seconds of history the noise level tracks"),
+        # retired absolute thresholds: accepted and ignored (the engine logs what replaced them)
+        "gyro_std_dps": ((int, float, type(None)), None, "delete it; still.k_std replaced it"),
+        "accel_tol_g": ((int, float, type(None)), None, "delete it; still.k_std replaced it"),
     },
 }
 
@@ -127,8 +141,16 @@ _RANGES: dict[str, Range] = {
     "monitor.window_s": _gt(0, 86_400, "s"),
     "monitor.alarm_floor_dps": Range(0, 10, unit="deg/s"),
     "still.window_s": _gt(0, 60, "s"),
-    "still.gyro_std_dps": _gt(0, 100, "deg/s"),
-    "still.accel_tol_g": _gt(0, 1, "g"),
+    "still.k_std": _gt(1, 1000),
+    "still.margin_s": Range(0, 60, unit="s"),
+    "still.min_run_s": _gt(0, 3600, "s"),
+    "still.learn_s": _gt(0, 3600, "s"),
+    "still.memory_s": _gt(0, 86_400, "s"),
+    "still.gyro_std_dps": _gt(0, 100, "deg/s"),  # retired (accepted, ignored): still.k_std replaced it
+    "still.accel_tol_g": _gt(0, 1, "g"),  # retired (accepted, ignored)
+    "link.can_node_id": Range(0, 15),
+    "push.target_drift_dph": _gt(0, 1e6, "deg/h"),
+    "push.min_cut": _gt(1, 1e6),
 }
 
 _TOP = {
@@ -241,8 +263,8 @@ def _fail(name: str, dotted: str, value: Any, fix: str) -> None:
 
 def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     link, est, val = s["link"], s["estimator"], s["validation"]
-    if link["kind"] not in ("serial", "can"):
-        _fail(name, "link.kind", link["kind"], "write `serial` or `can`")
+    if link["kind"] not in ("serial", "can", "mavlink"):
+        _fail(name, "link.kind", link["kind"], "write `serial` or `can` (or `mavlink` for an autopilot)")
     if link["kind"] == "can" and not s["virtual_unit"]["enabled"]:
         from gyrocal.drivers.can_defaults import with_python_can_defaults
 
@@ -253,8 +275,10 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
                   "~/.canrc)")
     if link["url"] == "auto" and link["kind"] == "serial" and not s["virtual_unit"]["enabled"]:
         _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
-    if est["method"] not in ("rls", "nlms", "lms"):
-        _fail(name, "estimator.method", est["method"], "write rls, nlms or lms")
+    if est["method"] not in ("rls", "nlms", "lms", "kf"):
+        _fail(name, "estimator.method", est["method"], "write rls, nlms, lms or kf")
+    if est["method"] == "kf":  # the bias intensities come from the terms file analyze wrote
+        load_bias_spec(est["terms"], name)
     if not link["url"].strip():
         _fail(name, "link.url", link["url"], "name the device, e.g. /dev/gyrocal-imu, or write `auto`")
     extra = s["virtual_unit"]["extra_args"]

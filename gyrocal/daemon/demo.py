@@ -5,6 +5,10 @@ udp_multicast bus with ``--can``), runs the daemon's engine against it, lets the
 its poses until the estimator converges and validates, pushes the set, waits for the ack and the
 read-back, and then asks the unit, which knows its own truth, how much drift is left in its
 compensated output. Exit status 0 means the set was pushed, acked and lowered the drift on every axis.
+
+``--grade fibre|tactical|consumer`` runs a unit of that grade (gyrocal/sim/grades.py) instead of the
+demo's; the JSON then gains ``grade`` and ``predicted_drift_after`` (the drift the daemon predicted
+the set would leave, deg/s per axis, beside the measured ``drift_rms_after``) to Contract 4's keys.
 """
 
 from __future__ import annotations
@@ -31,7 +35,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--can", action="store_true", help="use a python-can udp_multicast bus, not a pty")
     p.add_argument("--seed", type=int, default=1, help="the virtual unit's seed (its truth and bias)")
     p.add_argument("--rate", type=float, default=1000.0, help="sample rate [Hz], up to 2000")
-    p.add_argument("--timeout", type=float, default=55.0, help="give up after this many seconds")
+    p.add_argument("--grade", choices=("demo", "fibre", "tactical", "consumer"), default="demo",
+                   help="the virtual unit's grade (default: the demo's unit)")
+    p.add_argument("--can-node-id", type=int, default=0, metavar="N", help="the unit's CAN node id (--can)")
+    p.add_argument("--timeout", type=float, default=150.0, help="give up after this many seconds")
     p.add_argument("--json", action="store_true", help="print Contract 4 JSON instead of a table")
     p.add_argument("--verbose", action="store_true", help="show the daemon's log lines")
 
@@ -41,13 +48,16 @@ def _pushed(engine: Engine) -> bool:
     return s is not None and bool(s.last_push)
 
 
-def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float) -> dict[str, Any]:
+def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float, grade: str = "demo",
+             node_id: int = 0) -> dict[str, Any]:
     """Run the whole flow and return Contract 4's figures plus a few details for the table."""
     with tempfile.TemporaryDirectory(prefix="gyrocal-demo-") as tmp:
         work = Path(tmp)
+        extra = ["--grade", grade] + (["--can-node-id", str(node_id)] if kind == "can" else [])
         cfg = load_config(None, {
             "state_dir": str(work / "state"), "control_socket": str(work / "control.sock"),
             "virtual_unit.seed": seed, "virtual_unit.rate_hz": rate_hz, "link.kind": kind,
+            "virtual_unit.extra_args": extra, "link.can_node_id": node_id,
         })
         started = time.monotonic()
         can_port = free_udp_port() if kind == "can" else None
@@ -56,7 +66,7 @@ def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float) -> dict[str
         try:
             if kind == "can":
                 # on a bus, listen before the unit switches on, or its HELLO goes unheard
-                link_cfg = {**cfg.link, "kind": "can",
+                link_cfg = {**cfg.link, "kind": "can", "can_node_id": node_id,
                             "can": {"interface": "udp_multicast", "channel": "239.74.163.2",
                                     "port": can_port}}
                 engine = Engine(cfg, link_cfg)
@@ -67,10 +77,14 @@ def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float) -> dict[str
                 engine = Engine(cfg, {**cfg.link, **unit.link_cfg})
                 engine.open()
             before: dict[str, Any] = {}
+            push_at: dict[str, float] = {}
 
             def until(e: Engine) -> bool:
                 if not before and e.session is not None and e.session.applied is not None:
                     before.update(unit.status())  # what the unit's output holds before the push
+                    push_at["hello"] = time.monotonic()
+                if _pushed(e) and "hello" in push_at:
+                    push_at["t"] = round(time.monotonic() - push_at["hello"], 1)
                 return _pushed(e)
 
             engine.run(until=until, timeout_s=timeout_s)
@@ -93,17 +107,27 @@ def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float) -> dict[str
         "drift_rms_before": before_rms, "drift_rms_after": after_rms,
         "readback_ok": bool(push.get("readback_ok")), "elapsed_s": round(elapsed, 1),
         "unit_serial": (status.get("unit") or {}).get("serial"), "state": status.get("state"),
-        "reason": status.get("reason"), "samples": status.get("samples"),
+        "reason": status.get("reason"), "samples": status.get("samples"), "grade": grade,
+        "predicted_drift_after": _dps((push.get("predicted_drift_dph") or {}).get("left_poses")),
+        "first_push_s": push_at.get("t"),
     }
+
+
+def _dps(v: dict[str, Any] | None) -> dict[str, float | None]:
+    """{x, y, z} deg/h (None where unknown) as deg/s, the unit of Contract 4's figures."""
+    return {a: (v[a] / DPH if v and v.get(a) is not None else None) for a in "xyz"} if v else {}
 
 
 def main(args: argparse.Namespace) -> int:
     setup_logging("INFO" if args.verbose else "WARNING")
-    res = run_demo("can" if args.can else "serial", args.seed, args.rate, args.timeout)
+    res = run_demo("can" if args.can else "serial", args.seed, args.rate, args.timeout, args.grade,
+                   args.can_node_id)
     before, after = res["drift_rms_before"], res["drift_rms_after"]
     improved = bool(before and after) and all(after[a] < before[a] for a in "xyz")
     if args.json:
         keys = ("pushed", "acked", "version", "link", "drift_rms_before", "drift_rms_after")
+        if args.grade != "demo":
+            keys += ("grade", "predicted_drift_after")
         print(json.dumps({k: res[k] for k in keys}, indent=2))
     else:
         _print_table(res)
@@ -115,14 +139,16 @@ def main(args: argparse.Namespace) -> int:
 
 def _print_table(res: dict[str, Any]) -> None:
     before, after = res["drift_rms_before"], res["drift_rms_after"]
-    print(f"gyrocal demo: virtual unit {res['unit_serial']} over {res['link']}, "
-          f"{res['samples']} samples in {res['elapsed_s']} s")
+    print(f"gyrocal demo: virtual unit {res['unit_serial']} ({res['grade']} grade) over {res['link']}, "
+          f"{res['samples']} samples in {res['elapsed_s']} s; first push {res['first_push_s']} s after HELLO")
     print(f"calibration v{res['version']}: pushed={res['pushed']} acked={res['acked']} "
           f"read back={res['readback_ok']}")
-    print("axis  drift RMS before [deg/h]  after [deg/h]  reduction")
+    pred = res["predicted_drift_after"]
+    print("axis  drift RMS before [deg/h]  after [deg/h]  reduction  predicted after [deg/h]")
     for a in "xyz":
         if a in before and a in after:
             b, f = before[a] * DPH, after[a] * DPH
-            print(f"{a:>4}  {b:24.3f}  {f:13.3f}  {b / max(f, 1e-12):8.1f}x")
+            p = f"{pred[a] * DPH:23.3f}" if pred.get(a) is not None else f"{'-':>23}"
+            print(f"{a:>4}  {b:24.3f}  {f:13.3f}  {b / max(f, 1e-12):8.1f}x  {p}")
     print("(drift = the unit's systematic output drift over the schedule's poses, noise excluded, "
           "as the virtual unit measures it from its truth model)")

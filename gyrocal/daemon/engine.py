@@ -36,6 +36,7 @@ import signal
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,7 +51,7 @@ from gyrocal.daemon.reconcile import close_abandoned
 from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session
-from gyrocal.daemon.stillness import StillConfig, StillDetector
+from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
@@ -81,8 +82,10 @@ class Reply:
 class Engine(CommandsMixin):
     """Joins one link to sessions, the store, the control socket and systemd."""
 
-    def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None) -> None:
+    def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
+        self.clock = clock  # [s]; `gyrocal replay` runs the loop on the recording's unit time
         self.inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self.ring = RingBuffer(1 << 16)
         self.store = CalibrationStore(cfg.state_dir)
@@ -95,7 +98,7 @@ class Engine(CommandsMixin):
         self.detector = self._new_detector(1000.0)
         self.rate_hz: float | None = None
         self.status: dict[str, Any] = {"state": "STARTING"}
-        self.started = time.monotonic()
+        self.started = clock()
         self.dropped_nonfinite = 0
         self.samples_before_hello = 0
         self.sessions_started = 0
@@ -119,16 +122,22 @@ class Engine(CommandsMixin):
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _new_detector(self, rate_hz: float) -> StillDetector:
-        s = self.cfg.still
-        return StillDetector(StillConfig(int(max(8, s["window_s"] * rate_hz)), s["gyro_std_dps"],
-                                         s["accel_tol_g"]))
+        for key, instead in RETIRED_FIELDS.items():
+            if self.cfg.still.get(key) is not None:
+                log.warning("%s: still.%s is ignored: the still detector's thresholds are relative "
+                            "now; use %s", self.cfg.source, key, instead)
+        return StillDetector.for_rate(rate_hz, self.cfg.still)
 
     def _driver_cfg(self) -> dict[str, Any]:
         """The drivers' config mapping from the daemon's ``link`` section."""
         c = self.link_cfg
         backoff = {"backoff_max_s": min(float(c.get("reconnect_max_s", RECONNECT_MAX_S)), RECONNECT_MAX_S)}
         if c["kind"] == "can":
-            return {"kind": "can", "bus": dict(c["can"]), **backoff}
+            return {"kind": "can", "bus": dict(c["can"]), "node_id": int(c.get("can_node_id", 0)), **backoff}
+        if c["kind"] == "mavlink":  # options under link.mavlink; docs/mavlink.md
+            mav = {"state_file": str(self.cfg.state_dir / "mavlink.json"), **dict(c.get("mavlink") or {})}
+            return {"kind": "mavlink", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **mav,
+                    **backoff}
         return {"kind": "serial", "url": c["url"], "baudrate": int(c.get("baudrate", 921600)), **backoff}
 
     def open(self, wait: bool = True) -> None:
@@ -137,7 +146,7 @@ class Engine(CommandsMixin):
         self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
                               where=f"{self.cfg.source}: link", start=False)
         self.link.start(wait=wait)
-        self._ask_hello(time.monotonic())
+        self._ask_hello(self.clock())
         self.control = ControlServer(self.cfg.control_socket, self._on_command)
         self.control.start()
         log.info("control socket %s; state directory %s", self.cfg.control_socket, self.cfg.state_dir)
@@ -174,7 +183,7 @@ class Engine(CommandsMixin):
     # -- callbacks from other threads ---------------------------------------------------------
     def _on_control(self, msg: Any) -> None:
         # runs on the reader thread in stream order: ring.pushed is how many samples came before msg
-        self.inbox.put(("msg", msg, self.ring.pushed, time.monotonic()))
+        self.inbox.put(("msg", msg, self.ring.pushed, self.clock()))
 
     def _on_event(self, name: str, detail: str = "") -> None:
         self.inbox.put(("event", name, detail))
@@ -193,9 +202,9 @@ class Engine(CommandsMixin):
         """Run the loop until stop(), ``until(engine)`` is true, or ``timeout_s`` passes."""
         interval = self.notifier.watchdog_interval_s() if self.cfg.watchdog else None
         next_ping = 0.0
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        deadline = None if timeout_s is None else self.clock() + timeout_s
         while not self._stop.is_set():
-            now = time.monotonic()
+            now = self.clock()
             n = 0
             for _ in range(8):  # samples and messages in stream order, a bounded amount per round
                 got, more = self._step(now)
@@ -347,8 +356,8 @@ class Engine(CommandsMixin):
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
         prior = self.store.latest(hello.serial, acked_only=True)
-        learner = make_learner(self.cfg, prior)
         rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
+        learner = make_learner(self.cfg, prior, rate)
         self.detector = self._new_detector(rate)
         self._seq_session_at = None
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
@@ -390,7 +399,7 @@ class Engine(CommandsMixin):
         decided, still = self.detector.feed(block)
         self.session.feed(decided, still, now)
         if decided.size:
-            self._record_latency(time.monotonic() - decided["rx"])
+            self._record_latency(self.clock() - decided["rx"])
 
     def _record_latency(self, lat_s: np.ndarray) -> None:
         """Keep the newest latencies: from a sample's arrival (rx) to the weights having learnt it."""
@@ -433,6 +442,9 @@ class Engine(CommandsMixin):
         else:
             status = self.session.status()
             status["store_view"] = self._store_view(self.session.hello.serial)
+            status["still"] = self.detector.status()
+            if not status.get("trained_samples") and status["still"].get("why"):
+                status["reason"] = f"{status['reason']}; {status['still']['why']}"  # why nothing is learnt
         silent = connected and age is not None and age > SILENT_AFTER_S
         if not connected or (age is None and self.session is None and not link_stats.get("frames")):
             status["session_state"] = status["state"]

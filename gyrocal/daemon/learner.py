@@ -15,6 +15,15 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
   the mean residual of the stored set. A least-squares update would spread the bias change over
   every term that is 1 at the poses seen (1, gz, gz^2 at z up) and corrupt the others' stored
   values; the bias is the quantity that changes from one switch-on to the next.
+- **Predicted drift.** What the user cares about is the drift a set leaves in the output, not the
+  1-sigma of each coefficient. ``prediction`` gives the standard error of the set's prediction
+  c^T phi, RMS over the poses seen and over the sphere, from the estimator's covariance:
+  var_a(phi) = sigma_a^2 z^T R^+ z with z = M phi (docs/estimators.md). The session pushes when
+  that is small against the drift the set removes, or below ``push.target_drift_dph``.
+- **Thresholds in time, not samples.** The convergence windows default to seconds of still data at
+  the unit's rate, and the per-coefficient bounds (``max_sigma_dps``, ``max_change_dps``) default
+  to off: the predicted-drift gate replaces them, and it holds for a 0.002 deg/s fibre gyro and a
+  0.5 deg/s MEMS part alike. A ``convergence`` section in the config still overrides each field.
 """
 
 from __future__ import annotations
@@ -24,7 +33,9 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
+from gyrocal.model.identifiability import rank_aware_solve
 from gyrocal.model.methods import make_estimator
 from gyrocal.model.terms import TermSpec
 
@@ -53,19 +64,30 @@ def structural_rank(names: tuple[str, ...]) -> int:
 class Learner:
     """One session's estimator plus the daemon's push rules (see the module docstring)."""
 
-    def __init__(self, cfg: Any, prior: Any | None = None) -> None:
+    MIN_INFLATION_BLOCKS = 6
+    WINDOW_S = 2.0
+    """Seconds of still samples in the convergence windows (error ratio, change) and the minimum."""
+
+    def __init__(self, cfg: Any, prior: Any | None = None, rate_hz: float = 1000.0) -> None:
         self.names = list(prior.terms) if prior is not None and list(prior.terms) == cfg.terms \
             else list(cfg.terms)
         est = cfg.estimator
         conv = dict(est["convergence"])
         self.has_prior = prior is not None and list(prior.terms) == self.names
         conv.setdefault("min_rank", 1 if self.has_prior else structural_rank(tuple(self.names)))
+        n_win = max(200, int(self.WINDOW_S * rate_hz))
+        conv.setdefault("window", n_win)
+        conv.setdefault("min_samples", n_win)
+        conv.setdefault("max_sigma_dps", float("inf"))  # the predicted-drift gate replaces these
+        conv.setdefault("max_change_dps", float("inf"))
         kw: dict[str, Any] = {"forgetting": est["forgetting"],
                               "convergence": ConvergenceConfig.from_dict(conv, f"{cfg.source} estimator")}
         if self.has_prior:
             kw["prior_dps"] = np.asarray(prior.coefficients_dps, dtype=np.float64)
         if est["method"] in ("lms", "nlms"):
             kw["mu" if est["method"] == "nlms" else "alpha"] = est["step"]
+        if est["method"] == "kf":  # bias states with the intensities analyze wrote (model/bias_kalman.py)
+            kw["bias"] = load_bias_spec(est["terms"], cfg.source)
         self.est = make_estimator(est["method"], self.names, **kw)
         self.full_rank = structural_rank(tuple(self.names))
         self.prior = np.asarray(prior.coefficients_dps, dtype=np.float64) if self.has_prior else None
@@ -73,9 +95,22 @@ class Learner:
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)
         self._n = 0
+        self.prior_left = self._prior_left(prior) if self.has_prior else {}
 
-    def update_many(self, phi: np.ndarray, raw_dps: np.ndarray) -> None:
-        self.est.update_many(phi, raw_dps)
+    @staticmethod
+    def _prior_left(prior: Any) -> dict[str, np.ndarray]:
+        """The stored set's own predicted drift left [deg/s] (3,), poses and sphere, if it recorded one."""
+        pred = (getattr(prior, "stats", None) or {}).get("predicted_drift_dph") or {}
+        out = {}
+        for key in ("left_poses", "left_sphere"):
+            v = pred.get(key) or {}
+            if all(isinstance(v.get(a), int | float) for a in "xyz"):
+                out[key] = np.array([v[a] for a in "xyz"], dtype=float) / 3600.0
+        return out
+
+    def update_many(self, phi: np.ndarray, raw_dps: np.ndarray, t_s: np.ndarray | None = None) -> None:
+        # only the Kalman filter uses time (its bias states move with dt); the others stay as they were
+        self.est.update_many(phi, raw_dps, t_s if self.est.method == "kf" else None)
         if self.prior is not None:
             res = raw_dps - phi @ self.prior.T
             ok = np.all(np.isfinite(res), axis=1)
@@ -111,6 +146,13 @@ class Learner:
             return sig
         return self.est.uncertainty
 
+    def residual_var(self) -> np.ndarray:
+        """Per-sample variance (3,) [deg/s^2] of the stored set's residual this session (bias stage)."""
+        if self._n == 0:
+            return np.zeros(3)
+        mean = self._sum_res / self._n
+        return np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
+
     def identifiable(self) -> dict[str, Any]:
         return self.est.identifiability.as_contract()
 
@@ -122,6 +164,69 @@ class Learner:
     def state(self) -> dict[str, Any]:
         return self.est.state()
 
+    def prediction(self, poses_phi: np.ndarray, sphere_phi: np.ndarray,
+                   applied_dps: np.ndarray | None, held_out: Any | None = None) -> dict[str, Any]:
+        """Predicted drift [deg/s] (3,) the current set would leave, and the drift it would remove.
 
-def make_learner(cfg: Any, prior: Any | None) -> Learner:
-    return Learner(cfg, prior)
+        ``left_poses`` / ``left_sphere``: RMS over the poses seen (K, P) / over the sphere (M, P) of
+        the standard error of c^T phi (inf over the sphere while a direction it needs is not
+        determined). ``removes``: RMS over the poses seen of (c - applied)^T phi, the drift in the
+        present output that the set would take out. In the bias-only stage only the constant term
+        is learnt: its standard error is the whole prediction error (the stored gravity terms are
+        taken as they are).
+        """
+        c = self.coefficients
+        applied = np.zeros_like(c) if applied_dps is None or np.shape(applied_dps) != c.shape \
+            else np.asarray(applied_dps)
+        removes = np.sqrt(np.mean((poses_phi @ (c - applied).T) ** 2, axis=0)) if len(poses_phi) \
+            else np.full(3, np.nan)
+        if self.bias_only:
+            # the new bias's error plus the stored gravity terms' own (recorded when they were pushed)
+            sig = self.uncertainty[:, self.const]
+            zero = np.zeros(3)
+            return {"left_poses": np.hypot(sig, self.prior_left.get("left_poses", zero)),
+                    "left_sphere": np.hypot(sig, self.prior_left.get("left_sphere", zero)),
+                    "removes": removes, "stage": "bias", "gate": sig}
+        if self.est.samples == 0 or not len(poses_phi):
+            inf = np.full(3, np.inf)
+            return {"left_poses": inf, "left_sphere": inf.copy(), "removes": removes, "stage": "full"}
+        est = self.est
+        R, b, q, neff = est._totals()
+        w, lam_r, v_r, v_n = rank_aware_solve(R, b, est.w0, est.rank_tol)
+        rss = np.maximum(q - 2 * (w * b).sum(axis=0) + (w * (R @ w)).sum(axis=0), 0.0)
+        dof = neff - lam_r.size
+        var = rss / dof if dof > 0 else np.full(3, np.inf)
+
+        def rms_se(phi: np.ndarray, null_test: bool) -> np.ndarray:
+            z = phi @ est.norm.M.T  # (K, P) normalised terms
+            quad = (((z @ v_r) ** 2) / lam_r).sum(axis=1) if lam_r.size else np.full(len(z), np.inf)
+            if null_test and v_n.size:  # a direction the data did not determine: prediction unknown
+                size = np.maximum(np.linalg.norm(z, axis=1), 1e-300)
+                quad = np.where(np.linalg.norm(z @ v_n, axis=1) > 1e-3 * size, np.inf, quad)
+            return np.sqrt(var * np.mean(quad))
+
+        # white noise is what sigma assumes; a real unit's noise is coloured (flicker, random walk) and
+        # its model incomplete (temperature): the held-out blocks show by how much, through the scatter
+        # of their residual means against what white noise would give (>= 1; 1 with too few blocks)
+        infl = self._inflation(held_out, var, est, v_r, lam_r)
+        return {"left_poses": rms_se(poses_phi, False) * infl, "left_sphere": rms_se(sphere_phi, True) * infl,
+                "removes": removes, "stage": "full", "noise_inflation": infl}
+
+    def _inflation(self, blocks: Any, var: np.ndarray, est: Any, v_r: np.ndarray,
+                   lam_r: np.ndarray) -> np.ndarray:
+        """sqrt(observed / white-noise-expected) mean square of held-out block residuals, per axis."""
+        if blocks is None or len(blocks) < self.MIN_INFLATION_BLOCKS or not lam_r.size:
+            return np.ones(3)
+        raw = np.array([b.raw_dps for b in blocks])
+        phi = np.array([b.phi for b in blocks])
+        n = np.array([b.n for b in blocks], dtype=float)
+        res = raw - phi @ self.coefficients.T
+        z = phi @ est.norm.M.T
+        quad = (((z @ v_r) ** 2) / lam_r).sum(axis=1)
+        expected = var[None, :] * (1.0 / n + quad)[:, None]
+        ratio = np.mean(res**2, axis=0) / np.maximum(np.mean(expected, axis=0), 1e-300)
+        return np.sqrt(np.maximum(ratio, 1.0))
+
+
+def make_learner(cfg: Any, prior: Any | None, rate_hz: float = 1000.0) -> Learner:
+    return Learner(cfg, prior, rate_hz)

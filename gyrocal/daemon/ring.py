@@ -78,6 +78,25 @@ class RingBuffer:
         self._buf[head % self.capacity] = (seq & 0xFFFFFFFF, t_s, wx, wy, wz, ax, ay, az, temp_c, rx_time)
         self._head = head + 1  # publish after the slot is written
 
+    def push_block(self, block: np.ndarray) -> None:
+        """Store many samples at once (a ``SAMPLE_DTYPE`` array, at most ``capacity``); never blocks.
+
+        The same protocol as ``push``, for a producer that has a block in hand (``gyrocal replay``).
+        """
+        n = int(block.size)
+        if n == 0:
+            return
+        if n > self.capacity:
+            raise ValueError(f"a block of {n} samples does not fit a ring of {self.capacity}")
+        head = self._head
+        self._claim = head + n
+        i = head % self.capacity
+        first = min(n, self.capacity - i)
+        self._buf[i : i + first] = block[:first]
+        if first < n:
+            self._buf[: n - first] = block[first:]
+        self._head = head + n
+
     # ---- consumer side -------------------------------------------------------------------------
     def pop(self, max_n: int | None = None) -> np.ndarray:
         """Take up to ``max_n`` of the oldest unread samples (all when None), oldest first.

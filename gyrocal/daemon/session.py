@@ -4,10 +4,17 @@
 
 - COLLECTING: still samples train the estimator, except held-out blocks (see blocks.py).
 - CONVERGED: the estimator says so and every direction the data must determine is determined.
+  The push gate then asks what the user cares about: the drift the set is predicted to leave over
+  the poses seen (standard error of the prediction, learner.py) must be below 1/``push.min_cut``
+  of the drift it removes, on every axis, or below ``push.target_drift_dph``.
+- Staged calibration: a warm-started session (a stored set) first pushes a bias-only set, from its
+  first still second, validated on the blocks seen; the full set follows once the data supports it.
 - VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
   ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged.
 - PUSHING: push.py's transaction (write, matching ack, read back, retries).
-- APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows.
+- APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows. The
+  residual is raw - C_applied @ phi over the monitor blocks, so blocks of samples the unit sent
+  before it applied the set (the still detector decides them late) are judged with the new set too.
 
 The unit compensates its own output with the set it holds, so the daemon reconstructs the raw rate
 as ``raw = out + C_applied @ phi`` before learning: the estimator always learns the unit's total
@@ -46,7 +53,6 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -61,7 +67,7 @@ from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import CoeffReport, CoeffWrite, Hello
-from gyrocal.protocol.termsets import names_for, terms_id
+from gyrocal.protocol.termsets import TempRate, names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
 
@@ -89,7 +95,8 @@ class AppliedSet:
         """What the unit subtracts from its output, (N, 3) [deg/s]."""
         if not self.names or not np.any(self.coeffs_dps):
             return np.zeros((cols["t"].shape[0], 3))
-        return TermSpec.parse(self.names).design(cols) @ self.coeffs_dps.T
+        # gravity terms from a/|a|, as the unit computes them (docs/protocol.md, section 6)
+        return block_terms(TermSpec.parse(self.names), cols) @ self.coeffs_dps.T
 
     @classmethod
     def from_report(cls, msg: CoeffReport) -> AppliedSet:
@@ -105,10 +112,22 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
     return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
 
 
+DPH = 3600.0
+SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
+"""Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
+
+
 class Session(RecoveryMixin):
     """The state machine of one switch-on. See the module docstring."""
 
     CHECK_EVERY_S = 0.25
+    MAX_POSES = 64
+    BIAS_MIN_S = 1.0
+    """Seconds of still samples before a bias-only set may be pushed."""
+    BIAS_MIN_CUT = 3.0
+    """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
+    times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
+    The first push of a cold start and every full set use ``push.min_cut`` (20)."""
 
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
@@ -142,8 +161,13 @@ class Session(RecoveryMixin):
         self.reason = "reading the set the unit holds (COEFF_READ)"
         self.samples = 0
         self.still_samples = 0
+        self.poses: list[np.ndarray] = []  # block-mean terms (P,) of the distinct poses seen
+        self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
+        self.prediction: dict[str, Any] = {}
+        self._bias_pushed = False
+        self._push_prediction: dict[str, Any] = {}
         self._t0_unit: float | None = None
-        self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)  # (unit time s, temp degC)
+        self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
         self._next_check = now
         self._next_validation_at = 0
         self._read_deadline = now
@@ -209,7 +233,7 @@ class Session(RecoveryMixin):
         cols = {
             "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
             "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
-            "dtemp": np.full(samples.size, self._temperature_rate(samples)),
+            "dtemp": self._trate.update(samples["t"], samples["temp"]),
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         raw = out + self._compensation(samples["seq"], cols)
@@ -219,20 +243,48 @@ class Session(RecoveryMixin):
         blocks, train = self.acc.feed(raw, out, phi, still)
         self.still_samples += int(still.sum())
         if train.any() and self.state is not State.PUSHING:
-            self.learner.update_many(phi[train], raw[train])
+            self.learner.update_many(phi[train], raw[train], samples["t"][train])
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
+        self._note_poses(blocks, cols)
 
-    def _temperature_rate(self, samples: np.ndarray) -> float:
-        """Causal dT/dt [degC/s]: the least-squares slope of 1 s temperature means over the last 20 s."""
-        t, temp = float(samples["t"][-1]), float(np.mean(samples["temp"]))
-        if not self._temp_hist or t - self._temp_hist[-1][0] >= 1.0:
-            self._temp_hist.append((t, temp))
-        pts = [(ti, yi) for ti, yi in self._temp_hist if t - ti <= 20.0]
-        if len(pts) < 3:
-            return 0.0
-        tt, yy = np.array(pts).T
-        return float(np.polyfit(tt - tt[0], yy, 1)[0])
+    def _note_poses(self, blocks: list[Any], cols: dict[str, np.ndarray]) -> None:
+        """Remember the distinct poses seen (block-mean terms), for the predicted drift."""
+        self._context = {k: float(np.mean(v)) for k, v in cols.items() if k not in ("ax", "ay", "az")}
+        for b in blocks:
+            if all(np.max(np.abs(b.phi - p)) > 0.05 for p in self.poses):
+                self.poses.append(b.phi.copy())
+                if len(self.poses) > self.MAX_POSES:
+                    self.poses.pop(0)
+
+    def _sphere_phi(self) -> np.ndarray:
+        n = SPHERE_G.shape[0]
+        cols = {k: np.full(n, v) for k, v in self._context.items()}
+        cols.update({"ax": SPHERE_G[:, 0], "ay": SPHERE_G[:, 1], "az": SPHERE_G[:, 2]})
+        cols.setdefault("t", np.zeros(n))
+        return block_terms(self.spec, cols)
+
+    def predict(self) -> dict[str, Any]:
+        """The learner's predicted drift [deg/s] left by the current set (see learner.py)."""
+        applied = None
+        if self.applied is not None and tuple(self.applied.names) == tuple(self.names):
+            applied = self.applied.coeffs_dps
+        poses = np.array(self.poses) if self.poses else np.zeros((0, len(self.names)))
+        self.prediction = self.learner.prediction(poses, self._sphere_phi(), applied, self.holdout.blocks)
+        return self.prediction
+
+    def _gate(self) -> tuple[bool, str]:
+        """The push gate on the predicted drift left (deg/h in the reason)."""
+        p = self.predict()
+        # the bias stage is judged on what it learns (the bias); the stored terms' error is reported
+        left, removes = p.get("gate", p["left_poses"]), p["removes"]
+        target = self.cfg.push["target_drift_dph"] / DPH
+        cut = self.BIAS_MIN_CUT if p.get("stage") == "bias" else self.cfg.push["min_cut"]
+        ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
+        why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses; it must be below "
+               f"{self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
+               "the set removes")
+        return ok, why
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray]) -> np.ndarray:
         """What the unit subtracted from each sample, (N, 3) [deg/s], switching sets at the ack."""
@@ -289,7 +341,14 @@ class Session(RecoveryMixin):
     def _check_convergence(self, now: float) -> None:
         """COLLECTING -> CONVERGED -> VALIDATING; in MONITORING, re-validate as evidence grows."""
         monitoring = self.state is State.MONITORING
+        if self._bias_stage_due():
+            self._push_bias(now)
+            return
         ok, why = self.learner.converged
+        if ok:
+            ok, gate_why = self._gate()
+            if not ok:
+                why = "converged, but " + gate_why
         if not ok:
             if not monitoring:
                 self.state, self.reason = State.COLLECTING, why
@@ -309,15 +368,33 @@ class Session(RecoveryMixin):
             return
         self._validate(now)
 
-    def _validate(self, now: float) -> None:
+    def _bias_stage_due(self) -> bool:
+        """A warm start's bias-only set is due: first still second seen, not pushed yet this session."""
+        return (bool(self.cfg.push.get("bias_first", True)) and not self._bias_pushed
+                and self.learner.bias_only and self.validated_rms is None
+                and self.learner.samples >= self.BIAS_MIN_S * self.rate_hz and len(self.monitor) >= 2)
+
+    def _push_bias(self, now: float) -> None:
+        """Stage 1 after a switch-on: the stored set with this switch-on's bias, validated on the blocks
+        seen (the bias is a mean: there is nothing to over-fit), pushed as soon as the gate passes."""
+        ok, why = self._gate()
+        if not ok:
+            self.reason = "bias stage: " + why
+            return
+        self._bias_pushed = True
+        self._validate(now, self.monitor, stage="bias")
+
+    def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
         coeffs = self.learner.coefficients
-        rms_old = self.holdout.rms_out()
-        rms_new = self.holdout.rms_with(coeffs)
+        blocks = self.holdout if blocks is None else blocks
+        rms_old = blocks.rms_with(self._applied_coeffs()) if self._applied_coeffs() is not None \
+            else blocks.rms_out()
+        rms_new = blocks.rms_with(coeffs)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
         self.last_validation = {
-            "blocks": len(self.holdout),
+            "blocks": len(blocks), "stage": stage,
             "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
         }
@@ -326,6 +403,10 @@ class Session(RecoveryMixin):
                    f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
             self.last_validation["passed"] = False
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            if stage == "bias":
+                log.info("unit %s: bias stage: %s", self.hello.serial, why)
+                self.state, self.reason = State.COLLECTING, why
+                return
             if self.validated_rms is not None:  # a re-check while monitoring a pushed set: routine
                 log.info("unit %s: %s", self.hello.serial, why)
                 self.state = State.MONITORING
@@ -347,6 +428,11 @@ class Session(RecoveryMixin):
         if now < self._store_retry_at:
             self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
             return
+        self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items()
+                                 if k in ("left_poses", "left_sphere", "removes")}
+        infl = self.prediction.get("noise_inflation", np.ones(3))
+        self._push_prediction["noise_inflation"] = np.round(infl, 3).tolist()
+        self._push_prediction["stage"] = stage
         try:
             record = self._record(coeffs)
         except Exception as err:  # never push a set the store does not know
@@ -359,6 +445,12 @@ class Session(RecoveryMixin):
             return
         self.store_error = None
         self.validated_rms = rms_new
+        if stage == "bias":
+            # judged in sample on a few blocks: the alarm's reference must hold what other poses and
+            # later blocks will show (block noise, the stored terms' and the new bias's error)
+            block_var = self.learner.residual_var() / max(self.acc.size, 1)
+            left = np.nan_to_num(self.prediction.get("left_sphere", np.zeros(3)), posinf=0.0)
+            self.validated_rms = np.sqrt(rms_new**2 + block_var + left**2)
         self.start_push(record["version"], self.names, coeffs, now)
 
     def _record(self, coeffs: np.ndarray) -> dict[str, Any]:
@@ -369,6 +461,7 @@ class Session(RecoveryMixin):
             identifiable=self.learner.identifiable(),
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
+                   "predicted_drift_dph": self._push_prediction,
                    "warm_started_from": self.warm_started_from},
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
             push={"status": "pending"},
@@ -419,6 +512,9 @@ class Session(RecoveryMixin):
         version = self.push.write.version
         self.push = None
         self.last_push = {"version": version, **result.as_dict(), "utc": utc_now()}
+        if self._push_prediction:
+            self.last_push["predicted_drift_dph"] = self._push_prediction
+            self._push_prediction = {}
         self._store_push(version, dict(self.last_push), now)
         if result.status == "acked":
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
@@ -446,7 +542,8 @@ class Session(RecoveryMixin):
     def _check_alarm(self) -> None:
         if self.validated_rms is None or len(self.monitor) < 4:
             return
-        rms = self.monitor.rms_out()
+        applied = self._applied_coeffs()
+        rms = self.monitor.rms_out() if applied is None else self.monitor.rms_with(applied)
         limit = np.maximum(self.validated_rms * self.cfg.monitor["alarm_ratio"],
                            self.cfg.monitor["alarm_floor_dps"])
         alarm = bool(np.any(rms > limit))
@@ -454,6 +551,13 @@ class Session(RecoveryMixin):
             log.warning("unit %s: drift alarm: residual %s deg/s exceeds %s", self.hello.serial,
                         np.round(rms, 6).tolist(), np.round(limit, 6).tolist())
         self.alarm = alarm
+
+    def _applied_coeffs(self) -> np.ndarray | None:
+        """The unit's set in this session's term order, or None if it holds other terms (or none)."""
+        a = self.applied
+        if a is None or tuple(a.names) != tuple(self.names) or a.coeffs_dps.shape != (3, len(self.names)):
+            return None
+        return a.coeffs_dps
 
     # -- status -------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -485,4 +589,18 @@ class Session(RecoveryMixin):
                        "unrecorded_push_results": len(self.unrecorded),
                        "retry": None if self._retry is None else {"version": self._retry["version"],
                                                                    "round": self._retry["round"]}},
+            "poses_seen": len(self.poses),
+            "predicted_drift_dph": {k: (_xyz_dph(v) if k in ("left_poses", "left_sphere", "removes") else v)
+                                    for k, v in self.prediction.items() if k != "gate"},
         }
+
+
+def _dph(v: np.ndarray) -> str:
+    """A per-axis figure [deg/s] as deg/h text for log lines and reasons."""
+    return "/".join(f"{x * DPH:.3g}" for x in np.asarray(v, dtype=float))
+
+
+def _xyz_dph(v: np.ndarray) -> dict[str, float | None]:
+    """A per-axis figure [deg/s] as {x, y, z} in deg/h for status and records (inf/NaN as None)."""
+    v = np.asarray(v, dtype=float)
+    return {a: (float(x) * DPH if np.isfinite(x) else None) for a, x in zip("xyz", v, strict=True)}

@@ -1,75 +1,87 @@
-"""On-line still detection: which samples were taken with the unit at rest.
+"""On-line still detection: the daemon's side of the one still rule (gyrocal/model/still.py).
 
 Seed 000's model is a static one: gravity terms explain drift only while the unit rests. During a
 rotation the gyro reads the true rate and the accelerometer sees centripetal terms, so those samples
-must not reach the estimator. A sample is declared still when the gyro spread and the accelerometer
-norm stay quiet over a window that reaches both before and after it. That needs half a window of
-look-ahead, so decisions come out delayed by ``half`` samples; the detector keeps only that tail
-between blocks (bounded memory).
+must not reach the estimator. The rule, its thresholds and its statistics are model/still.py's, the
+same that `gyrocal fit` and `gyrocal analyze` apply to a log; this module only maps the daemon's
+``still`` config section onto it and reports, for status, why samples are (not) still.
 
-Units: gyro deg/s, accel g.
+Thresholds are relative: the detector learns the unit's quiet level in the first ``learn_s`` seconds
+after switch-on and keeps tracking it, so a 0.002 deg/s fibre gyro and a 0.5 deg/s MEMS part are
+handled alike. Windows are in seconds, so the rule does not change with the sample rate.
+
+Units: gyro deg/s, accel g, time s, rate Hz.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from gyrocal.model.still import StillRule, StreamingStill
 
-@dataclass
-class StillConfig:
-    window: int = 200  # samples
-    gyro_std_dps: float = 0.05
-    accel_tol_g: float = 0.05
+RULE_FIELDS = ("window_s", "k_std", "margin_s", "min_run_s", "learn_s", "memory_s")
+"""The ``still`` config fields that map onto ``StillRule``."""
+
+RETIRED_FIELDS = {
+    "gyro_std_dps": "still.k_std (a multiple of the unit's own quiet level, learnt at switch-on)",
+    "accel_tol_g": "still.k_std (the accelerometer's spread, relative to its own quiet level)",
+}
+"""Absolute thresholds of the old detector, and what replaced them."""
+
+
+def rule_from_config(still_cfg: dict[str, Any] | None) -> StillRule:
+    """The still rule from the daemon config's ``still`` section (missing fields: the defaults)."""
+    cfg = still_cfg or {}
+    return StillRule(**{k: float(cfg[k]) for k in RULE_FIELDS if cfg.get(k) is not None})
 
 
 class StillDetector:
-    """Feed blocks of samples; get back the samples now decided, with their still flags."""
+    """Feed blocks of samples (SAMPLE_DTYPE); get back the samples now decided, with their still flags."""
 
-    def __init__(self, cfg: StillConfig) -> None:
-        self.cfg = cfg
-        self.half = max(1, cfg.window // 2)
-        self._tail: np.ndarray | None = None  # samples not yet decided (plus look-behind)
-        self._behind = 0  # how many leading rows of _tail are look-behind only
+    def __init__(self, rate_hz: float, rule: StillRule | None = None) -> None:
+        self.core = StreamingStill(rate_hz, rule)
+
+    @classmethod
+    def for_rate(cls, rate_hz: float, still_cfg: dict[str, Any] | None = None) -> StillDetector:
+        return cls(rate_hz, rule_from_config(still_cfg))
+
+    @property
+    def rule(self) -> StillRule:
+        return self.core.rule
+
+    @property
+    def lookahead_s(self) -> float:
+        """Decisions come out this much later than the sample [s] (more while a stretch is young)."""
+        return (self.core.ahead + self.core.margin) / self.core.rate_hz
 
     def reset(self) -> None:
-        self._tail = None
-        self._behind = 0
+        self.core.reset()
 
     def feed(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return (decided samples, still mask). ``block`` is a SAMPLE_DTYPE structured array."""
-        if block.size == 0:
-            return block, np.zeros(0, dtype=bool)
-        buf = block if self._tail is None else np.concatenate([self._tail, block])
-        h = self.half
-        n = buf.size
-        n_decide = n - self._behind - h  # rows that now have h samples of look-ahead
-        if n_decide <= 0:
-            self._tail = buf
-            return buf[:0], np.zeros(0, dtype=bool)
-        quiet = self._quiet(buf)
-        # sample i is still if every sample within +-h is quiet
-        padded = np.concatenate([[0], np.cumsum(~quiet)])
-        lo = np.clip(np.arange(n) - h, 0, n)
-        hi = np.clip(np.arange(n) + h + 1, 0, n)
-        still = (padded[hi] - padded[lo]) == 0
-        first = self._behind
-        decided = buf[first:first + n_decide]
-        mask = still[first:first + n_decide]
-        keep_from = max(0, first + n_decide - h)
-        self._tail = buf[keep_from:]
-        self._behind = first + n_decide - keep_from
-        return decided, mask
+        return self.core.feed(block)
 
-    def _quiet(self, buf: np.ndarray) -> np.ndarray:
-        """Per sample: the gyro is near its local mean and |a| is near 1 g."""
-        w = np.column_stack([buf["wx"], buf["wy"], buf["wz"]])
-        a = np.column_stack([buf["ax"], buf["ay"], buf["az"]])
-        k = max(3, self.cfg.window // 4)
-        kernel = np.ones(k) / k
-        smooth = np.column_stack([np.convolve(w[:, i], kernel, mode="same") for i in range(3)])
-        dev = np.linalg.norm(w - smooth, axis=1)
-        rate = np.linalg.norm(smooth, axis=1)
-        a_ok = np.abs(np.linalg.norm(a, axis=1) - 1.0) < self.cfg.accel_tol_g
-        return (dev < 4 * self.cfg.gyro_std_dps) & (rate < 1.0) & a_ok
+    def status(self) -> dict[str, Any]:
+        """Why samples are or are not still: fraction, the learnt noise level, the thresholds in force."""
+        c = self.core
+        out: dict[str, Any] = {
+            "rate_hz": c.rate_hz, "window_s": c.rule.window_s, "k_std": c.rule.k_std,
+            "samples_decided": c.decided, "still_fraction": round(c.still_fraction, 4),
+        }
+        if c.levels is None:
+            out["noise"] = None
+            out["why"] = (f"learning the unit's noise level ({c.seen} of "
+                          f"{int(c.rule.learn_s * c.rate_hz)} samples)")
+            return out
+        out["noise"] = c.levels.as_dict(c.rule)
+        worst = float(np.max(c.levels.gyro_dps))
+        if worst > c.rule.max_quiet_dps:
+            out["why"] = (f"never at rest yet: the quietest gyro spread is {worst:.3g} deg/s, above "
+                          f"{c.rule.max_quiet_dps:g} deg/s")
+        elif c.decided and c.still_fraction == 0:
+            out["why"] = "no still stretch yet: hold the unit at rest for at least " \
+                         f"{c.rule.min_run_s + 2 * c.rule.margin_s + c.rule.window_s:.1f} s"
+        else:
+            out["why"] = ""
+        return out

@@ -3,8 +3,14 @@
 Source format: ``mpu6050_combined.csv`` per recording with t_s, acc_x_g.., gyr_x_dps.., temp_C.
 The data stays under EUPL-1.2 in data/sunsided_mpu6050 (its own folder and license). Given the
 dataset folder, every recording becomes one session (the same board switched on again, in another
-orientation); given one recording's folder or CSV, that recording alone. Time stamps are made
-non-decreasing (the source's per-sensor clocks differ slightly) by sorting.
+orientation); given one recording's folder or CSV, that recording alone.
+
+Time stamps: ``t_s`` is the logger's read time, not the sample time. The logger drains the sensor
+FIFO in bursts (1-2 ms apart within a burst, 40-70 ms between bursts) while the MPU6050 sampled at
+a steady ~99.3-100 Hz, so the read times scramble everything above about 2 Hz (issue 12). Each
+recording is therefore re-timed to its sample clock: a straight line of t against the sample
+index (``gyrocal.analysis.timestamps``), after sorting by t (the rows are already in order). The
+metadata key ``retimed`` records the clock rate, the share of bursty intervals and the largest lag.
 """
 
 from __future__ import annotations
@@ -13,16 +19,20 @@ from pathlib import Path
 
 import numpy as np
 
+from gyrocal.analysis.timestamps import retime
 from gyrocal.datasets._common import data_dir, make_log, read_table
 from gyrocal.errors import LogFormatError
 from gyrocal.logformat import LogData
 
 
-def _one(p: Path) -> np.ndarray:
+def _one(p: Path) -> tuple[np.ndarray, dict]:
     tab = read_table(p, ",", skip=1)
     if tab.shape[1] != 8:
         raise LogFormatError(f"{p}: {tab.shape[1]} columns where mpu6050_combined.csv has 8")
-    return tab[np.argsort(tab[:, 0], kind="stable")]
+    tab = tab[np.argsort(tab[:, 0], kind="stable")]
+    cols, notes = retime({"t": tab[:, 0]})
+    tab[:, 0] = cols["t"]
+    return tab, (notes[0] if notes else {})
 
 
 def load_sunsided(path: str | Path | None = None) -> LogData:
@@ -36,9 +46,14 @@ def load_sunsided(path: str | Path | None = None) -> LogData:
         files = sorted(p.glob("*/mpu6050_combined.csv"))
     if not files:
         raise LogFormatError(f"{p}: no mpu6050_combined.csv found")
-    tabs = [_one(f) for f in files]
+    parts = [_one(f) for f in files]
+    tabs = [tb for tb, _ in parts]
     session = np.concatenate([np.full(len(tb), float(i)) for i, tb in enumerate(tabs)])
     tab = np.vstack(tabs)
     meta = {"dataset": "sunsided_mpu6050", "sensor": "MPU6050", "license": "EUPL-1.2",
-            "recordings": ";".join(f"{i}={f.parent.name}" for i, f in enumerate(files))}
+            "recordings": ";".join(f"{i}={f.parent.name}" for i, f in enumerate(files)),
+            "retimed": ";".join(f"{i}=rate {n['rate_hz']:g} Hz, {n['far_interval_share']:.0%} bursty "
+                                f"intervals, lag <= {n['max_lag_s']:g} s"
+                                for i, (_, n) in enumerate(parts) if n)
+            or "no (time stamps regular)"}
     return make_log(tab[:, 0], tab[:, 4:7], tab[:, 1:4], str(p), meta, temp=tab[:, 7], session=session)

@@ -27,6 +27,8 @@ if TYPE_CHECKING:
 LINKS: dict[str, tuple[str, str]] = {
     "serial": ("gyrocal.drivers.serial_link", "SerialLink"),
     "can": ("gyrocal.drivers.can_link", "CanLink"),
+    "mavlink": ("gyrocal.mavlink.link", "MavlinkLink"),
+    "replay": ("gyrocal.replay.link", "ReplayLink"),
 }
 """Link kinds -> (module, class), imported on first use."""
 
@@ -64,12 +66,20 @@ def open_link(
         raise ConfigError(f"{where}: must be a mapping with a 'kind' field (serial or can)")
     kind = cfg.get("kind", cfg.get("type"))
     if kind not in LINKS:
-        raise ConfigError(f"{where}: field 'kind' is {kind!r}; write 'serial' or 'can'")
+        raise ConfigError(f"{where}: field 'kind' is {kind!r}; write one of {', '.join(LINKS)}")
     rest = {k: v for k, v in cfg.items() if k not in ("kind", "type")}
     common = {k: _seconds(where, k, rest.pop(k)) for k in _COMMON if k in rest}
     link: Link
     if kind == "serial":
         link = _serial(where, rest, ring, on_control, on_event, common)
+    elif kind == "mavlink":
+        from gyrocal.mavlink.config import mavlink_link
+
+        link = mavlink_link(where, rest, ring, on_control, on_event, common)
+    elif kind == "replay":  # a recording played as the unit (gyrocal/replay/link.py)
+        from gyrocal.replay.link import from_config
+
+        link = from_config(where, rest, ring, on_control, on_event, common)
     else:
         link = _can(where, rest, ring, on_control, on_event, common)
     if start:
@@ -109,6 +119,9 @@ def _can(where: str, rest: dict[str, Any], ring: Any, on_control: Any, on_event:
     dbc = rest.pop("dbc", None)
     if dbc is not None and not isinstance(dbc, str):
         raise ConfigError(f"{where}: field 'dbc' must be a file path")
+    node_id = rest.pop("node_id", 0)
+    if not isinstance(node_id, int) or isinstance(node_id, bool) or not 0 <= node_id <= 15:
+        raise ConfigError(f"{where}: field 'node_id' is {node_id!r}; write the unit's CAN node id, 0 to 15")
     bus = rest.pop("bus", None)
     if bus is None:
         bus = rest
@@ -118,4 +131,4 @@ def _can(where: str, rest: dict[str, Any], ring: Any, on_control: Any, on_event:
         kwargs = check_bus_kwargs(dict(bus) if isinstance(bus, Mapping) else bus)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from err
-    return CanLink(kwargs, ring, on_control, on_event, dbc_path=dbc, **common)
+    return CanLink(kwargs, ring, on_control, on_event, dbc_path=dbc, node_id=node_id, **common)

@@ -4,9 +4,14 @@ The bus is opened with ``can.Bus(**bus_kwargs)``, so a config names any interfac
 The reader thread calls ``bus.recv(poll_s)``, then drains what is already queued, and feeds each
 frame to the protocol's ``CanDecoder``, which reassembles samples and coefficient reports.
 
-Direction: only frames the DBC marks as sent by the UNIT are decoded. ``udp_multicast`` loops a
-sender's own datagrams back to it (its ``receive_own_messages=False`` does not filter them), so the
-host would otherwise read its own COEFF_* frames.
+Node: a unit has a node id 0..15 (docs/protocol.md, "CAN node id"); the link talks to one node,
+``node_id`` (config ``link.can_node_id``), and its frame ids are the DBC's node-0 ids plus node_id.
+
+Direction: only frames the DBC marks as sent by the UNIT (of this node) are decoded. ``udp_multicast``
+loops a sender's own datagrams back to it (its ``receive_own_messages=False`` does not filter them),
+so the host would otherwise read its own COEFF_* frames: those are counted as ``echo_frames``. Every
+other frame (another node's, another protocol's) goes to the decoder, which counts it in
+``foreign_frames`` (or ``unknown_types`` for an unknown function code on this node's ids).
 
 Reconnect: ``can.CanError`` or ``OSError`` from ``recv`` (an interface that went down, a USB adapter
 unplugged) shuts the bus down and reopens it with backoff.
@@ -66,15 +71,17 @@ class CanLink(Link):
 
     def __init__(
         self, bus_kwargs: dict[str, Any], ring: RingBuffer, on_control: ControlCallback,
-        on_event: EventCallback | None = None, *, dbc_path: str | None = None, **link_kwargs: Any,
+        on_event: EventCallback | None = None, *, dbc_path: str | None = None, node_id: int = 0,
+        **link_kwargs: Any,
     ) -> None:
         super().__init__(ring, on_control, on_event, **link_kwargs)
         from gyrocal.protocol.can_codec import CanCodec
 
         self.bus_kwargs = check_bus_kwargs(bus_kwargs)
-        self._codec = CanCodec(dbc_path)
+        self._codec = CanCodec(dbc_path, node_id=node_id)
         self._decoder = self._codec.decoder()
         self._accept = frame_ids_sent_by(self._codec, "UNIT")
+        self._echo_ids = frame_ids_sent_by(self._codec, "HOST") or frozenset()
         self._bus: can.BusABC | None = None
         self._own_echo = 0
 
@@ -104,13 +111,13 @@ class CanLink(Link):
             raise OSError("bus closed")
         frame = bus.recv(self.poll_s)
         out: list[Any] = []
-        accept, feed = self._accept, self._decoder.feed
+        accept, echo, feed = self._accept, self._echo_ids, self._decoder.feed
         budget = DRAIN_MAX
         while frame is not None:
-            if accept is None or frame.arbitration_id in accept:
-                out.extend(feed(frame))
+            if accept is not None and frame.arbitration_id in echo:
+                self._own_echo += 1  # our own COEFF_* frames looped back
             else:
-                self._own_echo += 1
+                out.extend(feed(frame))  # the unit's, or foreign (the decoder counts those)
             budget -= 1
             if budget <= 0:
                 break

@@ -22,8 +22,11 @@ R is the white noise per sample; when the spec does not give it, it is estimated
 covariance matching: E[r^2 + H P H^T] = R for the a-posteriori residual r (exact for a linear KF),
 a running mean over the first ``noise_window`` samples, then a moving average over that many.
 
-What the estimator reports: ``coefficients`` is what to push now, the weights with the current bias
-states added to the constant term (the "1" term; without one, see ``bias_state_dps``);
+What the estimator reports: ``coefficients`` is what to push now, the weights with the tracked bias
+added to the constant term (the "1" term; without one, see ``bias_state_dps``). A pushed set holds
+for a while: the walk's best prediction is its current value, but the Gauss-Markov part decays to
+zero with time constant T, so over a validity ``horizon_s`` H it is pushed at its mean,
+b_gm T/H (1 - exp(-H/T)) (H = 0: its current value);
 ``uncertainty`` is the filter's posterior 1-sigma of that set (+inf along undetermined directions,
 as for every method). The convergence rule's change test uses the coefficients without the tracked
 bias (the wander is expected to move; the gravity terms should settle).
@@ -34,9 +37,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from gyrocal.errors import ConfigError
 from gyrocal.model.allan import FLICKER_FLOOR
@@ -131,6 +136,26 @@ class BiasModel:
         return m
 
 
+def load_bias_spec(terms: Any, config_path: str | Path) -> BiasModel:
+    """The bias intensities for a daemon config's ``estimator.terms``: read from the terms file.
+
+    ``gyrocal analyze --out OUT`` writes OUT.terms.yaml with ``terms`` and the bias blocks, so naming
+    that file as the estimator's terms brings both. ``seed000`` or an inline list: no bias states
+    (the filter is then a Kalman form of RLS). A relative path is taken from the config's directory.
+    """
+    if not isinstance(terms, str) or terms == "seed000":
+        return BiasModel()
+    path = Path(terms)
+    if not path.is_absolute():
+        path = Path(config_path).parent / path
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"{path}: cannot read the bias spec ({err}); name the terms file "
+                          "`gyrocal analyze` wrote") from None
+    return BiasModel.from_spec(doc if isinstance(doc, Mapping) else {}, str(path))
+
+
 def _axes(v: Any, source: str, name: str, positive: bool = False) -> np.ndarray:
     try:
         if isinstance(v, Mapping):
@@ -151,22 +176,29 @@ class BiasKalman(Estimator):
     Args (beyond the Estimator's):
         bias: the intensities (``BiasModel.from_spec``); all zero makes it a Kalman form of RLS.
         dt_s: sample interval [s] used when no time stamps are given.
-        prior_sigma_dps: prior 1-sigma of every weight [deg/s per unit z]; large, so the data decides.
+        prior_sigma_dps: prior 1-sigma of every weight [deg/s per unit z]. The data decides whatever it
+            is (the prior weighs like R / prior^2 samples, ~1e-5 of one sample), but the larger it is
+            the worse P is conditioned; 1 deg/s covers tactical and consumer MEMS drift.
         noise0_dps: start of the on-line white-noise estimate when bias.noise_dps is None [deg/s].
         noise_window: samples over which the white-noise estimate averages.
+        horizon_s: how long a pushed set is expected to hold [s]; weighs the Gauss-Markov bias.
     """
 
     method = "kf"
 
     def __init__(self, terms: Sequence[str] | TermSpec = SEED000_TERMS, *,
-                 bias: BiasModel | Mapping | None = None, dt_s: float = 0.01, prior_sigma_dps: float = 10.0,
-                 noise0_dps: float = 0.01, noise_window: int = 2000, **kw: Any) -> None:
+                 bias: BiasModel | Mapping | None = None, dt_s: float = 0.01, prior_sigma_dps: float = 1.0,
+                 noise0_dps: float = 0.01, noise_window: int = 2000, horizon_s: float = 0.0,
+                 **kw: Any) -> None:
         super().__init__(terms, **kw)
         if isinstance(bias, Mapping):
             bias = BiasModel.from_dict(bias)
         self.bias = bias or BiasModel()
-        if not dt_s > 0 or not prior_sigma_dps > 0 or not noise0_dps > 0 or noise_window < 1:
-            raise ConfigError("kf: dt_s, prior_sigma_dps and noise0_dps must be > 0 and noise_window >= 1")
+        if not dt_s > 0 or not prior_sigma_dps > 0 or not noise0_dps > 0 or noise_window < 1 \
+                or not horizon_s >= 0:
+            raise ConfigError("kf: dt_s, prior_sigma_dps and noise0_dps must be > 0, noise_window >= 1 "
+                              "and horizon_s >= 0")
+        self.horizon_s = float(horizon_s)
         self.dt_s, self.prior_sigma, self.noise0 = float(dt_s), float(prior_sigma_dps), float(noise0_dps)
         self.noise_window = int(noise_window)
         p = len(self.spec)
@@ -263,10 +295,18 @@ class BiasKalman(Estimator):
         return y
 
     # ---- reads -----------------------------------------------------------------------------------
+    def _bias_weights(self) -> np.ndarray:
+        """Weight of each bias state in the pushed constant (n - P, 3): 1 for b_rw, horizon mean for b_gm."""
+        w = np.ones((self.n_state - len(self.spec), 3))
+        if self.i_gm is not None and self.horizon_s > 0:
+            T = self.bias.gm_tau_s
+            w[-1] = T / self.horizon_s * (1.0 - np.exp(-self.horizon_s / T))
+        return w
+
     @property
     def bias_state_dps(self) -> np.ndarray:
-        """The tracked bias b_rw + b_gm now, (3,) [deg/s] (zero without bias states)."""
-        return self.X[len(self.spec):].sum(axis=0)
+        """The tracked bias to push, b_rw + b_gm (its mean over ``horizon_s``), (3,) [deg/s]."""
+        return (self.X[len(self.spec):] * self._bias_weights()).sum(axis=0)
 
     @property
     def noise_dps(self) -> np.ndarray:
@@ -297,10 +337,11 @@ class BiasKalman(Estimator):
         p = len(self.spec)
         G = np.zeros((p, self.n_state))
         G[:, :p] = self.norm.M.T
+        G = np.broadcast_to(G, (3, p, self.n_state)).copy()
         k = self._const_index()
         if k is not None:
-            G[k, p:] = 1.0
-        var = np.einsum("ij,ajk,ik->ai", G, self.P, G)
+            G[:, k, p:] = self._bias_weights().T
+        var = np.einsum("aij,ajk,aik->ai", G, self.P, G)
         sig = np.sqrt(np.maximum(var, 0.0))
         sig[np.isinf(super().uncertainty)] = np.inf
         return sig
@@ -314,7 +355,7 @@ class BiasKalman(Estimator):
     # ---- warm start ------------------------------------------------------------------------------
     def _config(self) -> dict[str, Any]:
         return {"bias": self.bias.as_dict(), "dt_s": self.dt_s, "prior_sigma_dps": self.prior_sigma,
-                "noise0_dps": self.noise0, "noise_window": self.noise_window}
+                "noise0_dps": self.noise0, "noise_window": self.noise_window, "horizon_s": self.horizon_s}
 
     def state(self) -> dict[str, Any]:
         d = super().state()

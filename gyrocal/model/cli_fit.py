@@ -1,4 +1,6 @@
-"""``gyrocal fit LOG.csv --method {lms,nlms,rls,batch} [--terms ...] [--all-samples] --json`` (Contract 3).
+"""``gyrocal fit LOG --method {lms,nlms,rls,batch} [--terms ...] [--all-samples] --json``.
+
+LOG is any format of docs/logformat.md (CSV, python-can logs, serial captures, .ulg, .bin, rosbag2).
 
 - rls, nlms: one pass over the samples in time order, as the daemon learns on line;
 - batch: seed 000 eq. (4), rank-aware;
@@ -6,8 +8,19 @@
   weights in (-1, 1) (seeded). The pairs are the means of the still periods, as the seed's static
   drift data (one pair per rest), or every sample with ``--all-samples``.
 
-Uncertainty, identifiability and the residual RMS come from the same least-squares statistics for
-every method. An undetermined coefficient has uncertainty ``null`` in the JSON (+inf).
+Uncertainty, and what it means per method (``uncertainty_kind`` in the JSON):
+
+- batch, rls: ``ls_1sigma``, the least-squares 1-sigma from the residual (RLS with forgetting 1
+  is the least-squares solution; with forgetting < 1 it is the sigma of the weighted problem).
+- kf: ``kalman_posterior_1sigma``, from the filter's covariance (model/bias_kalman.py).
+- lms, nlms: ``ls_1sigma_plus_offset``. These gradient methods stop short of the least-squares
+  solution c_ls, and the LS sigma alone says nothing about that: on a tumble log NLMS sat ~37
+  sigma away from batch while printing batch's sigma. Their error is (c - c_ls) + (c_ls - truth),
+  the first part known from the data, the second of size sigma_ls, so we report
+  sqrt((c - c_ls)^2 + sigma_ls^2) and, in ``offset_from_ls_sigma``, |c - c_ls| / sigma_ls.
+
+An undetermined coefficient has uncertainty ``null`` in the JSON (+inf). Every row the reader or
+the fit left out is counted in ``skipped`` by reason (``nonfinite``, ``not_still``, ...).
 """
 
 from __future__ import annotations
@@ -15,21 +28,24 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 import yaml
 
 from gyrocal.errors import ConfigError
-from gyrocal.logformat import AXES, read_log
+from gyrocal.logformat import AXES, LogData
 from gyrocal.model.methods import LMS, METHODS, make_estimator
 from gyrocal.model.normalise import Normaliser
 from gyrocal.model.prep import prepare
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
+from gyrocal.readers import ReadOptions, accounting, add_arguments, read_any, read_from_args
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", metavar="LOG.csv", help="a log in the format of DESIGN.md Contract 1")
+    parser.add_argument("log", metavar="LOG",
+                        help="CSV, python-can log, serial capture, .ulg, .bin, rosbag2 (docs/logformat.md)")
     parser.add_argument("--method", choices=list(METHODS), default="rls", help="estimator (default rls)")
     parser.add_argument("--terms", nargs="+", metavar="TERM",
                         help="term names, e.g. 1 gx gy gz temp temp*dtemp (default: seed 000's 10 terms)")
@@ -37,7 +53,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--all-samples", action="store_true", help="use every sample, not only still periods")
     parser.add_argument("--forgetting", type=float, default=1.0, help="RLS forgetting factor (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of LMS's random initial weights")
-    parser.add_argument("--json", action="store_true", help="print the Contract 3 JSON object")
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    add_arguments(parser)
 
 
 def load_terms(args: argparse.Namespace) -> list[str]:
@@ -60,14 +77,31 @@ def load_terms(args: argparse.Namespace) -> list[str]:
     return list(SEED000_TERMS)
 
 
+def no_data_error(log: LogData, name: str) -> ConfigError:
+    """The real reason a log gave no usable rows: empty, header only, or every row dropped (and why)."""
+    if log.data_rows == 0:
+        if not log.dropped:
+            return ConfigError(f"{name}: the log holds no data rows (only a header or metadata)")
+        why = ", ".join(f"{v} {k}" for k, v in log.dropped.items())
+        return ConfigError(f"{name}: no sample could be decoded ({why}); is it the format its "
+                           "extension says? (--format, docs/logformat.md)")
+    why = ", ".join(f"{v} {k}" for k, v in log.dropped.items()) or "no reason recorded"
+    return ConfigError(f"{name}: all {log.data_rows} data rows were dropped ({why}); "
+                       "nothing is left to fit (docs/logformat.md)")
+
+
 def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False, forgetting: float = 1.0,
-        seed: int = 0) -> dict:
-    """Fit a log; returns the Contract 3 object (plus 'skipped' and 'convergence')."""
-    log = read_log(log_path)
+        seed: int = 0, log: LogData | None = None, read: ReadOptions | None = None) -> dict:
+    """Fit a log; returns the fit object (coefficients, uncertainty and its kind, skipped rows)."""
+    if log is None:
+        log = read_any(log_path, None, read)
+    if len(log) == 0:
+        raise no_data_error(log, log_path)
     spec = TermSpec.parse(terms)
     data = prepare(log, spec, all_samples)
     if len(data.phi) == 0:
-        raise ConfigError(f"{log_path}: no still samples found; try --all-samples")
+        raise ConfigError(f"{log_path}: none of its {len(log)} rows lies in a still period; "
+                          "add --all-samples to fit every sample")
     norm = Normaliser.from_data(spec, data.phi, data.y)
     kw: dict = {"normaliser": norm}
     if method == "rls":
@@ -83,26 +117,53 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
         est.update_many(data.phi, data.y, data.t)
     coeffs, sigma, ident = est.coefficients, est.uncertainty, est.identifiability
     rms = est.residual_rms_dps
+    kind, offset = ("kalman_posterior_1sigma" if method == "kf" else "ls_1sigma"), None
+    if method in ("lms", "nlms"):
+        ls = make_estimator("batch", spec, normaliser=norm)
+        ls.update_many(data.phi, data.y, data.t)
+        d = coeffs - ls.coefficients
+        with np.errstate(invalid="ignore", divide="ignore"):
+            offset = np.where(np.isfinite(sigma), np.abs(d) / sigma, np.nan)
+        sigma = np.where(np.isfinite(sigma), np.sqrt(d * d + sigma * sigma), sigma)
+        kind = "ls_1sigma_plus_offset"
 
     def row(a: np.ndarray) -> list[float | None]:
         return [float(v) if math.isfinite(v) else None for v in a]
 
-    return {
+    skipped = dict(log.dropped)
+    for k, v in est.counts.items():
+        if k != "accepted":
+            skipped[k] = skipped.get(k, 0) + int(v)
+    skipped["not_still"] = 0 if all_samples else len(log) - len(data.phi)
+    out = {
         "method": method, "terms": spec.names, "samples": est.samples,
         "coefficients": {ax: row(coeffs[i]) for i, ax in enumerate(AXES)},
         "uncertainty": {ax: row(sigma[i]) for i, ax in enumerate(AXES)},
+        "uncertainty_kind": kind,
         "identifiable": ident.as_contract(),
         "rms": {ax: float(rms[i]) for i, ax in enumerate(AXES)},
-        "skipped": {k: v for k, v in est.counts.items() if k != "accepted"},
-        "rows": data.total_rows, "still_only": not all_samples,
+        "skipped": skipped,
+        "rows": data.total_rows, "source_rows": accounting(log)["source_rows"], "still_only": not all_samples,
+        "warnings": list(log.warnings),
     }
+    if offset is not None:
+        out["offset_from_ls_sigma"] = {ax: row(offset[i]) for i, ax in enumerate(AXES)}
+    return out
+
+
+UNCERTAINTY_LABEL = {
+    "ls_1sigma": "+- least-squares 1-sigma",
+    "kalman_posterior_1sigma": "+- the Kalman filter's posterior 1-sigma",
+    "ls_1sigma_plus_offset": "+- sqrt(offset from least squares^2 + LS sigma^2)",
+}
 
 
 def format_table(res: dict) -> str:
     """A readable table: one row per term, value +- 1-sigma per axis [deg/h per term unit]."""
     lines = [f"method {res['method']}, {res['samples']} of {res['rows']} samples "
              f"({'still periods' if res['still_only'] else 'all samples'}); "
-             "coefficients in deg/h per term unit",
+             "coefficients in deg/h per term unit, "
+             + UNCERTAINTY_LABEL.get(res.get("uncertainty_kind", ""), "+- 1-sigma"),
              f"{'term':<14}" + "".join(f"{'axis ' + ax:>24}" for ax in AXES)]
     for j, name in enumerate(res["terms"]):
         cells = []
@@ -115,10 +176,25 @@ def format_table(res: dict) -> str:
     lines.append(f"rank {ident['rank']} of {len(res['terms'])}"
                  + ("; undetermined (= 0 on the data): " + "; ".join(und) if und else ""))
     lines.append("residual rms [deg/s]: " + ", ".join(f"{ax} {res['rms'][ax]:.4g}" for ax in AXES))
+    off = res.get("offset_from_ls_sigma")
+    if off:
+        worst = max((v for ax in AXES for v in off[ax] if v is not None), default=0.0)
+        lines.append(f"{res['method']} stops {worst:.1f} LS-sigma from the least-squares solution at most "
+                     "(offset_from_ls_sigma in --json)")
+    lines.append(skipped_line(res["source_rows"], res["skipped"]))
     return "\n".join(lines)
 
 
+def skipped_line(source_rows: int, skipped: dict[str, int]) -> str:
+    """``rows: 7250 in the log; not used: 50 nonfinite, 2000 not_still`` (every reason, even 0 for NaN)."""
+    parts = [f"{v} {k}" for k, v in skipped.items() if v or k == "nonfinite"]
+    return f"rows: {source_rows} in the log; not used: " + (", ".join(parts) if parts else "none")
+
+
 def main(args: argparse.Namespace) -> int:
-    res = fit(args.log, args.method, load_terms(args), args.all_samples, args.forgetting, args.seed)
+    log = read_from_args(args.log, args)
+    for w in log.warnings:
+        print(f"gyrocal: warning: {w}", file=sys.stderr)
+    res = fit(args.log, args.method, load_terms(args), args.all_samples, args.forgetting, args.seed, log=log)
     print(json.dumps(res) if args.json else format_table(res))
     return 0

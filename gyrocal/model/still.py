@@ -1,24 +1,98 @@
-"""Offline still detection: which samples of a recorded log were taken with the unit at rest.
+"""Still detection: which samples were taken with the unit at rest. One rule, off line and on line.
 
-Shared by `gyrocal fit` (model/prep.py) and `gyrocal analyze` (analysis/segments.py), so a log's
-still periods are the same whichever command reads it. The daemon decides on line, with half a window
-of look-ahead, in daemon/stillness.py.
+`gyrocal fit` (model/prep.py) and `gyrocal analyze` (analysis/segments.py) call ``detect_still`` on a
+whole log; the daemon feeds ``StreamingStill`` block by block (daemon/stillness.py). Both apply the
+same ``StillRule`` to the same rolling statistics, so a log's still periods are the same whichever
+reads it. The only difference is where the unit's quiet level comes from:
 
-The detector looks at the gyro first (the accelerometer alone lets slow hand motion in, as the
-mikoff data shows) and at the accelerometer second (a constant-rate turn has a small gyro variance
-but a turning gravity vector). Thresholds are relative to the log's own quiet level, so the same rule
-works for a 0.002 deg/s fibre gyro and a 0.3 deg/s MEMS part. Units: gyro deg/s, accel g, time s.
+- off line, the quantile over the whole log;
+- on line, the same quantile over a bounded, decimated history of the stream (learnt in the first
+  ``learn_s`` seconds after switch-on, then tracked; memory ``memory_s``).
+
+The rule looks at the gyro first (the accelerometer alone lets slow hand motion in, as the mikoff
+data shows) and at the accelerometer second (a constant-rate turn has a small gyro variance but a
+turning gravity vector). Thresholds are relative to the unit's own quiet level, so the same rule
+works for a 0.002 deg/s fibre gyro and a 0.5 deg/s MEMS part, and windows are in seconds, so it
+works at 100 Hz and at 2 kHz. Units: gyro deg/s, accel g, time s, rate Hz.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
 AXES = ("x", "y", "z")
 QUIET_QUANTILE = 0.1
 """The quiet level is this quantile of the rolling std: still for at least this share of the log."""
+
+
+@dataclass(frozen=True)
+class StillRule:
+    """The thresholds of the one still rule (all relative to the unit's quiet level, or in seconds).
+
+    A sample is still when, in a window of ``window_s`` around it, every gyro axis has a rolling std
+    below ``k_std`` times its quiet level, the rolling gyro mean stays within
+    max(``band_k`` x quiet, ``band_floor_dps``) of the still median (a constant-rate turn is not
+    still), and every accelerometer axis has a rolling std below ``k_std`` times its quiet level
+    (gravity turning). Still stretches then lose ``margin_s`` at each end and are dropped when
+    shorter than ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
+    no gyro is that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro
+    mean exceeds ``max_rate_dps`` on any axis.
+
+    A rest therefore yields still samples only when it lasts at least window + 2 margins + min_run
+    (1.1 s with the defaults). The margins and minimum length are what hand-held real data needs
+    (mikoff: shorter ones let settling motion in, and ``gyrocal analyze`` then mistakes a warm-up for
+    a random walk); a unit whose schedule rests for less sets ``still.margin_s`` / ``min_run_s`` lower.
+    """
+
+    window_s: float = 0.4
+    k_std: float = 4.0
+    margin_s: float = 0.1
+    min_run_s: float = 0.5
+    quantile: float = QUIET_QUANTILE
+    band_k: float = 8.0
+    band_floor_dps: float = 0.5
+    max_quiet_dps: float = 5.0
+    max_rate_dps: float = 10.0
+    """A rolling gyro mean beyond this [deg/s] is a turn, whatever the learnt centre: a unit that
+    switches on turning would otherwise learn the turn as its bias (MEMS biases are a few deg/s)."""
+    learn_s: float = 1.0
+    """On line: seconds of data before the first decision (the quiet level is learnt on them)."""
+    memory_s: float = 120.0
+    """On line: the quiet level is the quantile over this much recent history."""
+
+    def window(self, rate_hz: float) -> int:
+        return max(3, int(round(self.window_s * rate_hz)))
+
+    def margin(self, rate_hz: float) -> int:
+        return int(round(self.margin_s * rate_hz))
+
+    def min_run(self, rate_hz: float) -> int:
+        return int(round(self.min_run_s * rate_hz))
+
+
+@dataclass
+class QuietLevels:
+    """The unit's quiet level: per-axis gyro std [deg/s], accel std [g], still gyro mean [deg/s]."""
+
+    gyro_dps: np.ndarray
+    accel_g: np.ndarray
+    centre_dps: np.ndarray
+
+    def as_dict(self, rule: StillRule) -> dict[str, object]:
+        """For status: the noise level and the thresholds in force."""
+        band = np.maximum(rule.band_k * self.gyro_dps, rule.band_floor_dps)
+        return {
+            "gyro_noise_dps": dict(zip(AXES, self.gyro_dps.tolist(), strict=True)),
+            "accel_noise_g": dict(zip(AXES, self.accel_g.tolist(), strict=True)),
+            "gyro_std_limit_dps": dict(zip(AXES, (rule.k_std * self.gyro_dps).tolist(), strict=True)),
+            "accel_std_limit_g": dict(zip(AXES, (rule.k_std * self.accel_g).tolist(), strict=True)),
+            "gyro_mean_band_dps": dict(zip(AXES, band.tolist(), strict=True)),
+            "gyro_centre_dps": dict(zip(AXES, self.centre_dps.tolist(), strict=True)),
+        }
 
 
 def sample_rate_hz(t: np.ndarray, session: np.ndarray) -> float:
@@ -36,8 +110,14 @@ def sample_rate_hz(t: np.ndarray, session: np.ndarray) -> float:
 
 
 def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Centred rolling mean and std of x (N,) over w samples (edges use shorter windows)."""
+    """Centred rolling mean and std of x (N,) over w samples (edges use shorter windows).
+
+    The sums run on x minus its first value, which keeps the variance free of cancellation when the
+    gyro carries a large rate (a turn) beside a 0.002 deg/s noise.
+    """
     n = x.size
+    x0 = x[0] if n else 0.0
+    x = x - x0
     cs = np.concatenate(([0.0], np.cumsum(x)))
     cs2 = np.concatenate(([0.0], np.cumsum(x * x)))
     i = np.arange(n)
@@ -46,36 +126,76 @@ def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
     cnt = hi - lo
     mean = (cs[hi] - cs[lo]) / cnt
     var = np.maximum((cs2[hi] - cs2[lo]) / cnt - mean**2, 0.0)
-    return mean, np.sqrt(var)
+    return mean + x0, np.sqrt(var)
+
+
+def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rolling gyro mean (N, 3) [deg/s], gyro std (N, 3) [deg/s], accel std (N, 3) [g] over w samples."""
+    mean = np.empty_like(gyro)
+    std = np.empty_like(gyro)
+    astd = np.empty_like(accel)
+    for k in range(3):
+        mean[:, k], std[:, k] = _rolling(gyro[:, k], w)
+        _, astd[:, k] = _rolling(accel[:, k], w)
+    return mean, std, astd
+
+
+def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: StillRule,
+                 accel_quantum_g: np.ndarray | None = None) -> QuietLevels:
+    """The quiet level from rolling statistics (rows: samples, or a decimated history of them).
+
+    The accelerometer's quiet level is floored at half its quantum (``accel_quantum_g``, (3,) [g]): a
+    quantised still axis (CAN: 1 mg) has a rolling std of exactly 0 in many windows, which would
+    otherwise make nothing still.
+    """
+    gq = np.maximum(np.quantile(std, rule.quantile, axis=0), 1e-9)
+    floor = np.maximum(1e-6, 0.5 * (np.zeros(3) if accel_quantum_g is None else accel_quantum_g))
+    aq = np.maximum(np.quantile(astd, rule.quantile, axis=0), floor)
+    centre = np.empty(3)
+    slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
+    for k in range(3):
+        sel = (std[:, k] < rule.k_std * gq[k]) & slow
+        centre[k] = np.median(mean[sel, k]) if np.any(sel) else 0.0
+    return QuietLevels(gq, aq, centre)
+
+
+def quiet_mask(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, lv: QuietLevels,
+               rule: StillRule) -> np.ndarray:
+    """Per sample (N,): quiet by the rule's relative thresholds (before margins and minimum length)."""
+    band = np.maximum(rule.band_k * lv.gyro_dps, rule.band_floor_dps)
+    ok = np.all(std < rule.k_std * lv.gyro_dps, axis=1)
+    ok &= np.all(np.abs(mean - lv.centre_dps) < band, axis=1)
+    ok &= np.all(np.abs(mean) < rule.max_rate_dps, axis=1)
+    ok &= np.all(astd < rule.k_std * lv.accel_g, axis=1)
+    if np.any(lv.gyro_dps > rule.max_quiet_dps):
+        ok[:] = False
+    return ok
 
 
 def detect_still(
     columns: Mapping[str, np.ndarray], rate_hz: float, window_s: float = 0.4, k_std: float = 4.0,
-    margin_s: float = 0.1, min_run_s: float = 0.5,
+    margin_s: float = 0.1, min_run_s: float = 0.5, rule: StillRule | None = None,
 ) -> np.ndarray:
-    """A still mask (N,) from the gyro and accelerometer columns.
-
-    A sample is still when, in a window of ``window_s`` [s] around it, every gyro axis has a
-    rolling std below ``k_std`` times its quiet level (the 10 % quantile of the rolling std, so a
-    log that moves most of the time still has a true quiet level), the rolling gyro mean stays
-    within a band around the still median (a constant-rate turn), and the accelerometer std stays
-    below ``k_std`` times its quiet level (gravity turning). Stretches are then shrunk by ``margin_s`` [s] at
-    each end and dropped when shorter than ``min_run_s`` [s].
-    """
+    """A still mask (N,) from the gyro and accelerometer columns of a whole log (see ``StillRule``)."""
+    if rule is None:
+        rule = StillRule(window_s=window_s, k_std=k_std, margin_s=margin_s, min_run_s=min_run_s)
     n = len(columns["t"])
-    w = max(3, int(round(window_s * rate_hz)))
-    ok = np.ones(n, dtype=bool)
-    for a in AXES:
-        mean, std = _rolling(np.asarray(columns[f"w{a}"], dtype=float), w)
-        quiet = max(float(np.quantile(std, QUIET_QUANTILE)), 1e-9)
-        ok &= std < k_std * quiet
-        centre = np.median(mean[std < k_std * quiet]) if np.any(std < k_std * quiet) else np.median(mean)
-        # a turn of a few deg/s held for a while; the band is wide against any bias change
-        ok &= np.abs(mean - centre) < max(8.0 * quiet, 0.5)
-        _, astd = _rolling(np.asarray(columns[f"a{a}"], dtype=float), w)
-        ok &= astd < k_std * max(float(np.quantile(astd, QUIET_QUANTILE)), 1e-6)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    gyro = np.column_stack([np.asarray(columns[f"w{a}"], dtype=float) for a in AXES])
+    accel = np.column_stack([np.asarray(columns[f"a{a}"], dtype=float) for a in AXES])
+    mean, std, astd = rolling_stats(gyro, accel, rule.window(rate_hz))
+    quantum = np.array([_quantum(accel[:, k]) for k in range(3)])
+    ok = quiet_mask(mean, std, astd, quiet_levels(mean, std, astd, rule, quantum), rule)
     session = np.asarray(columns.get("session", np.zeros(n)))
-    return _shrink(ok, session, int(round(margin_s * rate_hz)), int(round(min_run_s * rate_hz)))
+    return _shrink(ok, session, rule.margin(rate_hz), rule.min_run(rate_hz))
+
+
+def _quantum(x: np.ndarray) -> float:
+    """The smallest step between distinct values (the quantisation LSB), from up to 200k samples."""
+    steps = np.diff(np.unique(x[:200_000]))
+    steps = steps[steps > 0]
+    return float(steps.min()) if steps.size else 0.0
 
 
 def _shrink(mask: np.ndarray, session: np.ndarray, margin: int, min_len: int) -> np.ndarray:
@@ -98,3 +218,134 @@ def _stretches(mask: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.nd
     starts = np.flatnonzero(mask & ~prev)
     ends = np.flatnonzero(mask & ~nxt) + 1
     return starts, ends
+
+
+class StreamingStill:
+    """``detect_still`` for a stream: feed rows in blocks of any size, get back decided rows in order.
+
+    Rows are any numpy structured array with fields wx, wy, wz [deg/s] and ax, ay, az [g] (the
+    daemon's SAMPLE_DTYPE). Memory is bounded: a tail of undecided rows (look-ahead half a window,
+    plus up to ``min_run_s`` + 2 ``margin_s`` while a stretch's length is unknown, plus ``learn_s``
+    at switch-on) and a decimated history of ``memory_s`` for the quiet level. Decisions come out
+    delayed by that look-ahead.
+    """
+
+    def __init__(self, rate_hz: float, rule: StillRule | None = None) -> None:
+        self.rule = rule or StillRule()
+        self.rate_hz = float(rate_hz)
+        self.w = self.rule.window(self.rate_hz)
+        self.ahead = self.w - self.w // 2 - 1  # rows after i inside i's window
+        self.behind = self.w // 2
+        self.margin = self.rule.margin(self.rate_hz)
+        self.min_len = max(self.rule.min_run(self.rate_hz), 1)
+        self.step = max(1, self.w // 4)  # history decimation
+        hist = int(min(4096, max(64, self.rule.memory_s * self.rate_hz / self.step)))
+        self._hist: deque[np.ndarray] = deque(maxlen=hist)  # rows of (mean 3, std 3, astd 3)
+        self._learn_rows = int(round(self.rule.learn_s * self.rate_hz))
+        self.levels: QuietLevels | None = None
+        self.seen = 0  # rows fed
+        self.decided = 0  # rows returned
+        self.still_decided = 0
+        self._rows: np.ndarray | None = None  # look-behind + rows whose statistics are pending
+        self._stat_from = 0  # index in _rows of the first row without statistics
+        self._stat_index = 0  # global index of that row
+        self._pending_rows: list[np.ndarray] = []  # rows with statistics, waiting for levels
+        self._pending_stats: list[np.ndarray] = []
+        self._q_rows: np.ndarray | None = None  # rows with quiet flags, waiting for the run rule
+        self._q_ok = np.zeros(0, dtype=bool)
+        self._q0 = 0  # global index of _q_rows[0]
+        self._run_start: int | None = None  # global start of the stretch open at _q_rows[0]
+        self._empty: np.ndarray | None = None
+        self._levels_at = -(1 << 62)  # _stat_index when the levels were last computed
+        self._quantum = np.full(3, np.inf)  # smallest accel step seen per axis [g] (quantisation)
+
+    def reset(self) -> None:
+        self.__init__(self.rate_hz, self.rule)  # type: ignore[misc]
+
+    @property
+    def still_fraction(self) -> float:
+        return self.still_decided / self.decided if self.decided else 0.0
+
+    def feed(self, block: np.ndarray, final: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Return (decided rows, still mask); ``final`` decides everything left (end of a log)."""
+        self.seen += block.size
+        if self._empty is None:
+            self._empty = block[:0]
+        rows = block if self._rows is None else np.concatenate([self._rows, block])
+        self._rows = rows
+        n = rows.size
+        upto = n if final else n - self.ahead  # rows [_stat_from, upto) now have full windows
+        if upto > self._stat_from and n:
+            lo = max(0, self._stat_from - self.behind)
+            part = rows[lo:n]
+            gyro = np.column_stack([part[f"w{a}"] for a in AXES]).astype(float)
+            accel = np.column_stack([part[f"a{a}"] for a in AXES]).astype(float)
+            for k in range(3):
+                self._quantum[k] = min(self._quantum[k], _quantum(accel[:, k]) or np.inf)
+            # centred windows: rows before _stat_from are kept as look-behind for this purpose
+            mean, std, astd = rolling_stats(gyro, accel, self.w)
+            sel = slice(self._stat_from - lo, upto - lo)
+            stats = np.hstack([mean[sel], std[sel], astd[sel]])
+            self._pending_rows.append(rows[self._stat_from:upto])
+            self._pending_stats.append(stats)
+            first = self._stat_index
+            take = (np.arange(first, first + stats.shape[0]) % self.step) == 0
+            self._hist.extend(stats[take])
+            self._stat_index += upto - self._stat_from
+            keep = max(0, upto - self.behind)
+            self._rows = rows[keep:]
+            self._stat_from = upto - keep
+        if self.levels is None and self._stat_index < self._learn_rows and not final:
+            return self._emit(final=False)
+        if self._pending_stats:
+            if self._stat_index - self._levels_at >= max(1, self.rate_hz * 0.25) or final:
+                h = np.array(self._hist) if self._hist else np.vstack(self._pending_stats)
+                quantum = np.where(np.isfinite(self._quantum), self._quantum, 0.0)
+                self.levels = quiet_levels(h[:, 0:3], h[:, 3:6], h[:, 6:9], self.rule, quantum)
+                self._levels_at = self._stat_index
+            assert self.levels is not None
+            st = np.vstack(self._pending_stats)
+            ok = quiet_mask(st[:, 0:3], st[:, 3:6], st[:, 6:9], self.levels, self.rule)
+            prs = np.concatenate(self._pending_rows)
+            self._pending_rows, self._pending_stats = [], []
+            self._q_rows = prs if self._q_rows is None else np.concatenate([self._q_rows, prs])
+            self._q_ok = np.concatenate([self._q_ok, ok])
+        return self._emit(final)
+
+    def _emit(self, final: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Apply margins and the minimum length to the queued quiet flags; return the decided prefix.
+
+        Only the last stretch can be undecided: its rows within ``margin`` of the queue's end (it
+        may go on), or all its rows after the start margin while its length is below ``min_run``.
+        """
+        ok = self._q_ok
+        n = ok.size
+        if self._q_rows is None or n == 0:
+            return self._empty, np.zeros(0, dtype=bool)
+        still = np.zeros(n, dtype=bool)
+        decided = n
+        open_start: int | None = None
+        starts, ends = _stretches(ok, np.zeros(n))
+        m = self.margin
+        for s, e in zip(starts, ends, strict=True):
+            gs = self._run_start if (s == 0 and self._run_start is not None) else self._q0 + s
+            lo_i = gs + m - self._q0  # queue index of the first row past the start margin
+            long_enough = self._q0 + e - gs - 2 * m >= self.min_len
+            if e < n or final:
+                if long_enough:
+                    still[max(lo_i, 0):max(e - m, 0)] = True
+                continue
+            open_start = gs
+            if long_enough:
+                still[max(lo_i, 0):max(n - m, 0)] = True
+                decided = min(max(n - m, 0), n)
+            else:
+                decided = min(max(lo_i, s, 0), n)
+        out_rows, out = self._q_rows[:decided], still[:decided]
+        self._run_start = open_start
+        self._q_rows = self._q_rows[decided:]
+        self._q_ok = ok[decided:]
+        self._q0 += decided
+        self.decided += decided
+        self.still_decided += int(out.sum())
+        return out_rows, out

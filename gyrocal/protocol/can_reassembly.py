@@ -252,6 +252,8 @@ class CanDecoder:
 
     def _finish(self, t: _Transfer | None, raw: dict[str, int]) -> tuple[object | None, int]:
         """(the set as CoeffWrite, 0) or (None, NakReason) for a commit closing transfer t."""
+        if t is not None and t.n > MAX_TERMS and t.version == raw["CAL_VERSION"]:
+            return None, NakReason.BAD_LENGTH  # BEGIN announced more terms than a set can have
         if t is None or t.version != raw["CAL_VERSION"] or not t.complete():
             self.stats.incomplete += 1
             return None, NakReason.INCOMPLETE

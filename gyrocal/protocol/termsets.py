@@ -11,7 +11,10 @@ terms.
 from __future__ import annotations
 
 import binascii
+from collections import deque
 from collections.abc import Iterable
+
+import numpy as np
 
 from gyrocal.errors import ProtocolError
 from gyrocal.model.terms import SEED000_TERMS
@@ -63,3 +66,56 @@ def known_ids() -> dict[int, tuple[str, ...]]:
 
 SEED000_ID = register(SEED000_TERMS)
 EXTENDED_TEMP_ID = register(EXTENDED_TEMP_TERMS)
+TEMP_POLY3_TERMS: tuple[str, ...] = ("1", "temp", "temp^2", "temp^3")
+"""A cubic polynomial in temperature [degC] per axis: what PX4 (TC_G*) and ArduPilot (INS_TCAL*) hold."""
+TEMP_POLY3_ID = register(TEMP_POLY3_TERMS)
+TEMP_POLY2_ID = register(TEMP_POLY3_TERMS[:3])
+"""The quadratic and linear prefixes: an autopilot holds them too (the higher coefficients are 0)."""
+TEMP_POLY1_ID = register(TEMP_POLY3_TERMS[:2])
+
+
+class TempRate:
+    """``dtemp`` [degC/s] exactly as a unit computes it for a term set that uses it (protocol.md, section 6).
+
+    Each whole second of unit time (floor(t_s)) the unit averages the temperature of that second's
+    samples. When a second closes, dtemp becomes the least-squares slope of the last 20 such means
+    against their second's mid-time (0 until 3 means exist). A sample uses the dtemp in force when it
+    was taken, i.e. from the seconds before its own. Both the unit and the host's reconstruction of
+    the unit's compensation use this one rule, so their ``dtemp`` agree sample for sample.
+    """
+
+    WINDOW = 20
+
+    def __init__(self) -> None:
+        self._sec: int | None = None
+        self._sum = 0.0
+        self._n = 0
+        self._means: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)
+        self.value = 0.0
+
+    def update(self, t_s: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
+        """Per-sample dtemp (N,) [degC/s] for the next samples in time order."""
+        t = np.asarray(t_s, dtype=np.float64)
+        temp = np.asarray(temp_c, dtype=np.float64)
+        out = np.empty(t.size)
+        sec = np.floor(t).astype(np.int64)
+        i = 0
+        while i < t.size:
+            j = i + int(np.searchsorted(sec[i:], sec[i], side="right"))
+            if self._sec is not None and sec[i] != self._sec:
+                self._close()
+            self._sec = int(sec[i])
+            out[i:j] = self.value
+            self._sum += float(temp[i:j].sum())
+            self._n += j - i
+            i = j
+        return out
+
+    def _close(self) -> None:
+        if self._n and self._sec is not None:
+            self._means.append((self._sec + 0.5, self._sum / self._n))
+        self._sum, self._n = 0.0, 0
+        if len(self._means) >= 3:
+            tt, yy = np.array(self._means).T
+            tt = tt - tt.mean()
+            self.value = float((tt * (yy - yy.mean())).sum() / (tt * tt).sum())

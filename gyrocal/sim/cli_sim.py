@@ -26,10 +26,11 @@ from typing import Any
 import numpy as np
 
 from gyrocal.errors import ConfigError
+from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
 from gyrocal.sim.schedule import load_schedule, tumble
-from gyrocal.sim.truth import TruthModel
+from gyrocal.sim.truth import NOISE_FIELDS, set_noise
 from gyrocal.sim.unit import Faults, VirtualUnit
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,8 @@ DEFAULT_CAN_GROUP = "239.74.163.2"  # udp_multicast's IPv4 group when nothing el
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--link", choices=("pty", "can"), default="pty", help="transport (default pty)")
+    p.add_argument("--link", choices=("pty", "can", "mavlink"), default="pty",
+                   help="transport (default pty); mavlink: a virtual PX4 or ArduPilot autopilot")
     p.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="samples per second (default 200)")
     p.add_argument("--seed", type=int, default=0, help="truth seed: same seed, same output (default 0)")
     p.add_argument("--serial", type=int, default=4242, help="unit serial number (default 4242)")
@@ -49,6 +51,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--power-cycle-every", type=float, default=0.0, metavar="S",
                    help="power-cycle after S seconds of each session (0 = never)")
     p.add_argument("--status-json", metavar="PATH", help="write the unit's status here (atomic, ~1 s)")
+    p.add_argument("--noise", action="append", metavar="NAME=VALUE",
+                   help=f"sensor noise beyond white, repeatable; NAME one of {', '.join(NOISE_FIELDS)}")
     p.add_argument("--record", metavar="LOG.csv", help="record what was sent (+ LOG.truth.csv)")
     p.add_argument("--flash", metavar="PATH", help="keep boot count and applied set in this JSON file")
     p.add_argument("--pty-link", metavar="PATH", help="symlink PATH to the pty slave (a stable name)")
@@ -72,6 +76,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     b.add_argument("--can-config", metavar="JSON",
                    help="can.Bus keyword arguments as JSON text or a .json file")
     p.add_argument("--dbc", metavar="FILE.dbc", help="CAN database (default: the shipped one)")
+    p.add_argument("--can-node-id", type=int, default=0, metavar="N",
+                   help="the unit's CAN node id 0..15 (default 0; frame id = DBC id + N)")
+    p.add_argument("--grade", choices=("demo", "fibre", "tactical", "consumer"), default="demo",
+                   help="unit grade preset: noise, bias instability, temperature sensitivity "
+                        "(default demo: the seed-000 unit of the demo; see gyrocal/sim/grades.py)")
     f = p.add_argument_group("fault injection")
     f.add_argument("--nak-next", type=int, default=0, metavar="N", help="NAK the next N coefficient writes")
     f.add_argument("--drop-acks", type=int, default=0, metavar="N", help="ignore the next N writes silently")
@@ -91,6 +100,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="go silent S s after start (see --silence-for; SIGUSR2 toggles at run time)")
     f.add_argument("--silence-for", type=float, default=0.0, metavar="S", help="length of that silence [s]")
     p.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+    from gyrocal.sim.autopilot_run import configure as configure_autopilot
+
+    configure_autopilot(p)
 
 
 def can_bus_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -144,6 +156,8 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError(f"--garbage-rate {args.garbage_rate:g}: must be a probability in [0, 1]")
     if args.link == "can" and args.pty_link:
         raise ConfigError("--pty-link only applies to --link pty")
+    if not 0 <= args.can_node_id <= 15:
+        raise ConfigError(f"--can-node-id {args.can_node_id}: must be a CAN node id 0 to 15")
 
 
 def _load_flash(unit: VirtualUnit, path: str | None) -> None:
@@ -162,13 +176,18 @@ def main(args: argparse.Namespace) -> int:
     if logging.getLogger().level > logging.INFO:  # a bus that failed to open warns again from __del__
         logging.getLogger("can").setLevel(logging.ERROR)
     _check(args)
+    if args.link == "mavlink":
+        from gyrocal.sim.autopilot_run import main as autopilot_main
+
+        return autopilot_main(args)
     schedule = load_schedule(args.schedule) if args.schedule else tumble()
     faults = Faults(nak_next=args.nak_next, drop_acks=args.drop_acks, never_hello=args.never_hello,
                     garbage_rate=args.garbage_rate, nan_readback=args.nan_readback, lose_ack=args.lose_ack,
                     cycle_after_ack=args.cycle_after_ack, no_coeff_read=args.no_coeff_read,
                     seq_outlier_every_s=args.seq_outlier_every, silence_at_s=args.silence_at,
                     silence_for_s=args.silence_for)
-    unit = VirtualUnit(TruthModel(), schedule, args.rate, args.seed, args.serial, faults=faults)
+    truth = set_noise(grade_truth(args.grade, args.rate), args.noise)  # a grade, then --noise on top
+    unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
     recorder = None
@@ -199,7 +218,7 @@ def _open_transport(args: argparse.Namespace) -> Any:
     if args.link == "pty":
         return PtyTransport(args.pty_link, garbage_rate=args.garbage_rate,
                             rng=np.random.default_rng([args.seed, 0x6A7B]))
-    return CanTransport(can_bus_kwargs(args), dbc_path=args.dbc)
+    return CanTransport(can_bus_kwargs(args), dbc_path=args.dbc, node_id=args.can_node_id)
 
 
 def _install_signals(runner: Runner) -> None:

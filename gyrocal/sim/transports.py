@@ -190,7 +190,7 @@ class CanTransport:
 
     kind = "can"
 
-    def __init__(self, bus_kwargs: dict[str, Any], *, dbc_path: str | None = None) -> None:
+    def __init__(self, bus_kwargs: dict[str, Any], *, dbc_path: str | None = None, node_id: int = 0) -> None:
         from gyrocal.drivers.can_link import check_bus_kwargs
 
         self.bus_kwargs = check_bus_kwargs(bus_kwargs)
@@ -204,7 +204,7 @@ class CanTransport:
         from gyrocal.protocol.can_codec import CanCodec
 
         enlarge_receive_buffer(self.bus)
-        self._codec = CanCodec(dbc_path)
+        self._codec = CanCodec(dbc_path, node_id=node_id)
         self._decoder = self._codec.decoder()
         self._accept = frame_ids_sent_by(self._codec, "HOST")  # not our own looped-back frames
         self.stats = {"frames_sent": 0, "tx_errors": 0}

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gyrocal.errors import ConfigError
 from gyrocal.model.allan import FLICKER_FLOOR, gauss_markov_avar
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 from gyrocal.sim.schedule import Schedule
@@ -182,6 +183,42 @@ class TruthModel:
         out = out + np.exp(-np.asarray(t_on_s) / e.warmup_tau_s)[:, None] * e.warmup_dps
         out = out + np.sin(2 * np.pi * e.periodic_hz * np.asarray(t_s))[:, None] * e.periodic_dps
         return out
+
+
+NOISE_FIELDS = ("noise_dps", "random_walk_dps_per_sqrt_s", "bias_instability_dps", "flicker_band_s", "gm_dps",
+                "gm_tau_s", "lowpass_hz", "quant_lsb_dps")
+"""The truth fields ``gyrocal sim --noise NAME=VALUE`` may set (units in their names)."""
+
+
+def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
+    """Apply ``NAME=VALUE`` settings (VALUE one number, or x,y,z; flicker_band_s lo,hi) to the model.
+
+    E.g. ``random_walk_dps_per_sqrt_s=1e-4``, ``bias_instability_dps=0.0028`` (10 deg/h),
+    ``quant_lsb_dps=0.0076``. Raises ConfigError naming the setting and the fix.
+    """
+    scalars = ("noise_dps", "gm_tau_s", "lowpass_hz")
+    for item in items or []:
+        name, _, text = (x.strip() for x in item.partition("="))
+        if name not in NOISE_FIELDS or not text:
+            raise ConfigError(f"--noise {item!r}: write NAME=VALUE, NAME one of {', '.join(NOISE_FIELDS)}")
+        try:
+            vals = [float(v) for v in text.split(",")]
+        except ValueError:
+            raise ConfigError(f"--noise {item!r}: VALUE must be numbers joined by commas") from None
+        counts = (2,) if name == "flicker_band_s" else (1,) if name in scalars else (1, 3)
+        if len(vals) not in counts or not all(math.isfinite(v) and v >= 0 for v in vals):
+            raise ConfigError(f"--noise {item!r}: give {' or '.join(map(str, counts))} finite numbers >= 0")
+        if name == "noise_dps":
+            model.noise_dps = vals[0]
+        elif name == "flicker_band_s":
+            model.effects.flicker_band_s = (vals[0], vals[1])
+        else:
+            setattr(model.effects, name, vals[0] if name in scalars else _vec3(tuple(vals) if len(vals) == 3
+                                                                                   else vals[0]))
+    lo, hi = model.effects.flicker_band_s
+    if model.effects.gm_tau_s <= 0 or not 0 < lo < hi:
+        raise ConfigError("--noise: gm_tau_s must be > 0 and flicker_band_s two taus 0 < lo < hi [s]")
+    return model
 
 
 class SessionStream:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.errors import ProtocolError
+from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import (
@@ -138,6 +139,7 @@ class VirtualUnit:
         self.boot_count = int(boot_count)
         self.applied: AppliedSet | None = applied
         self.stream: SessionStream | None = None
+        self._trate = termsets.TempRate()
         self.samples_sent = 0
         self.writes = {"acked": 0, "naked": 0, "dropped": 0, "acks_lost": 0}
         self.cycle_pending = False  # set by the cycle_after_ack fault; the runner power-cycles
@@ -147,6 +149,7 @@ class VirtualUnit:
         """Switch on: count the boot, start a new session (new bias); return the HELLO to send."""
         self.boot_count += 1
         self.stream = SessionStream(self.truth, self.schedule, self.rate_hz, self.seed, self.boot_count)
+        self._trate = termsets.TempRate()  # dtemp as protocol.md defines it, from this switch-on
         return self._hello()
 
     def _hello(self) -> list[Any]:
@@ -168,7 +171,8 @@ class VirtualUnit:
         cols = self.stream.chunk(n)
         t_on = np.arange(i0, i0 + n) / self.rate_hz
         applied = self.applied  # one read: a set applied meanwhile takes effect at the next chunk
-        comp = np.zeros((n, 3)) if applied is None else self._compensation(applied, cols, t_on)
+        dtemp = self._trate.update(cols["t"], cols["temp"])  # kept up whether or not a set uses it
+        comp = np.zeros((n, 3)) if applied is None else self._compensation(applied, cols, t_on, dtemp)
         for k, a in enumerate("xyz"):
             cols[f"w{a}"] = cols[f"w{a}"] - comp[:, k]
             cols[f"comp_w{a}"] = comp[:, k]
@@ -180,12 +184,12 @@ class VirtualUnit:
         """The next ``n`` SAMPLE messages (compensated output)."""
         return self.render(n).samples()
 
-    def _compensation(self, applied: AppliedSet, cols: dict[str, np.ndarray], t_on: np.ndarray) -> np.ndarray:
+    def _compensation(self, applied: AppliedSet, cols: dict[str, np.ndarray], t_on: np.ndarray,
+                      dtemp: np.ndarray) -> np.ndarray:
         """(N, 3) [deg/s] that the applied set subtracts, from measured accel and the thermal state."""
-        th = self.truth.thermal
         inputs = {"ax": cols["ax"], "ay": cols["ay"], "az": cols["az"], "temp": cols["temp"],
-                  "dtemp": th.rate_c_per_s(t_on), "t_on": t_on, "t": cols["t"]}
-        return applied.spec.design(inputs) @ applied.coeffs_dps.T
+                  "dtemp": dtemp, "t_on": t_on, "t": cols["t"]}
+        return block_terms(applied.spec, inputs) @ applied.coeffs_dps.T  # gravity = a/|a| (protocol.md)
 
     # ---- host requests -------------------------------------------------------------------------
     def handle(self, msg: Any) -> list[Any]:

@@ -1,0 +1,235 @@
+"""Benchmark: the real daemon (``gyrocal run``, link kind mavlink) calibrates virtual autopilots.
+
+For each autopilot (PX4, ArduPilot): start ``gyrocal sim --link mavlink`` on a pty (a board warming
+from 20 to 50 degC), run the daemon with the temperature polynomial as its model through the warm-up
+(4 time constants, at least until its first push; it pushes again when a wider range improves the
+set), stop both, and compare the gyro offset error over the temperature range of the set the
+autopilot holds at the end (its TMIN..TMAX), before and after, in deg/h:
+
+    error(T) = true raw offset(T) - what the autopilot subtracts at T with its parameters
+
+"before" uses the parameters the autopilot booted with, "after" those it holds at the end (read from
+the simulator's flash file), both at the learning boot's bias. The autopilot's subtraction is
+evaluated continuously (gyrocal.mavlink.profiles: applied + clamp_adjust); PX4's 1 degC staircase
+adds at most slope x 1 degC on top, reported as ``px4_staircase_dph``. For PX4, whose TC_G_ENABLE
+was 0 at boot, the set applies after the next reboot (a new switch-on bias then adds a constant);
+``shape_after_dph`` is the error with its mean over the range removed, the part a reboot keeps.
+
+    python benchmarks/bench_mavlink.py --quick --json out/bench_mavlink.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gyrocal.mavlink.profiles import PROFILES
+from gyrocal.sim.autopilot import VirtualAutopilot
+
+DPH = 3600.0
+TERMS = ["1", "temp", "temp^2"]
+"""The daemon's model: a quadratic in temperature (docs/mavlink.md: the cubic term is not determined
+by the daemon's rank test over a 30 degC warm-up)."""
+CONVERGENCE = {"max_change_dps": 1.0, "max_sigma_dps": 1.0}
+"""The convergence rule's coefficient-space thresholds switched off for this term set: in a polynomial
+in absolute temperature a change of 1e-4 deg/s/degC^2 in c2 moves c0 by 0.12 deg/s (35^2 x 1e-4)
+while the curve over 20..50 degC barely moves, so the defaults (2e-4 deg/s) are never met. The
+rule on the a-priori error and the held-out validation (>= 20 % better) remain the gate. Phase 2:
+judge convergence on the curve over the range seen (docs/mavlink.md)."""
+
+
+def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> dict[str, Any]:
+    work.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    sim = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gyrocal.cli",
+            "sim",
+            "--link",
+            "mavlink",
+            "--autopilot",
+            kind,
+            "--rate",
+            "250",
+            "--seed",
+            str(seed),
+            "--warmup-tau",
+            str(tau_s),
+            "--flash",
+            str(work / "flash.json"),
+            "--status-json",
+            str(work / "ap.json"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=(work / "sim.err").open("wb"),
+        env=env,
+    )
+    pty = sim.stdout.readline().decode().strip()  # type: ignore[union-attr]
+    cfg = {
+        "link": {"kind": "mavlink", "url": pty, "mavlink": {"autopilot": kind}},
+        "virtual_unit": {"enabled": False},
+        "estimator": {"terms": TERMS, "convergence": CONVERGENCE},
+        # a consumer MEMS gyro after the autopilot's filter: ~0.05 deg/s of noise (the default
+        # still threshold, 0.05 deg/s, suits our own unit's grade and would reject half the windows)
+        "still": {"gyro_std_dps": 0.2},
+        "state_dir": str(work / "state"),
+        "control_socket": str(work / "ctl.sock"),
+        "watchdog": False,
+    }
+    (work / "cfg.json").write_text(json.dumps(cfg))
+    (work / "cfg.yaml").write_text(json.dumps(cfg))  # JSON is YAML
+    t0 = time.monotonic()
+    daemon = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gyrocal.cli",
+            "run",
+            "--config",
+            str(work / "cfg.yaml"),
+            "--log-level",
+            "INFO",
+        ],
+        stdout=(work / "run.log").open("wb"),
+        stderr=subprocess.STDOUT,
+        env=env,
+    )
+    status: dict[str, Any] = {}
+    pushed_after = None
+    pushes: list[dict[str, Any]] = []
+    try:
+        # run through the warm-up (4 time constants: 98 % of the 30 degC rise): the daemon keeps
+        # validating while it monitors and pushes again when a wider range improves the set
+        while time.monotonic() - t0 < limit_s:
+            time.sleep(2.0)
+            out = subprocess.run(
+                [sys.executable, "-m", "gyrocal.cli", "status", "--socket", str(work / "ctl.sock"), "--json"],
+                capture_output=True,
+                text=True,
+                env=env,
+            )
+            if out.returncode == 0 and out.stdout.strip():
+                status = json.loads(out.stdout)
+                last = status.get("last_push") or {}
+                if last.get("status") == "acked" and (
+                    not pushes or pushes[-1]["version"] != last.get("version")
+                ):
+                    pushes.append({"version": last.get("version"), "at_s": round(time.monotonic() - t0, 1)})
+                    pushed_after = pushed_after or time.monotonic() - t0
+            if pushed_after and time.monotonic() - t0 > 4.0 * tau_s:
+                break
+    finally:
+        for proc in (daemon, sim):
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    return {
+        "status": status,
+        "pushed_after_s": pushed_after,
+        "pushes": pushes,
+        "flash": json.loads((work / "flash.json").read_text()),
+    }
+
+
+def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: np.ndarray) -> dict[str, Any]:
+    """Before/after offset error [deg/h] (N, 3) at ``temps`` for the learning boot (boot 1)."""
+    ap = VirtualAutopilot(kind, 250, seed)
+    ap.power_on()
+    before_params = dict(ap.params)
+    prof = PROFILES[kind](0)
+    raw = ap.raw_offset_dps(temps)
+
+    def error(p: dict[str, float]) -> np.ndarray:
+        from gyrocal.mavlink.poly import evaluate
+
+        return raw - (evaluate(prof.applied(p), temps) + prof.clamp_adjust(p, temps))
+
+    after_params = {**before_params, **{k: float(v) for k, v in final_params.items() if k in before_params}}
+    if kind == "ardupilot":  # the learning boot's own gyro calibration, not the one saved at the last boot
+        for k in ("INS_GYROFFS_X", "INS_GYROFFS_Y", "INS_GYROFFS_Z", "INS_GYR1_CALTEMP"):
+            after_params[k] = (
+                final_params[k] if final_params.get("INS_TCAL1_ENABLE") == 1 else before_params[k]
+            )
+    b, a = error(before_params) * DPH, error(after_params) * DPH
+    out: dict[str, Any] = {
+        "temps_c": temps.round(2).tolist(),
+        "before_dph": b.round(1).tolist(),
+        "after_dph": a.round(1).tolist(),
+        "shape_after_dph": (a - a.mean(axis=0)).round(1).tolist(),
+    }
+    out["improvement_x"] = (
+        (np.max(np.abs(b), axis=0) / np.maximum(np.max(np.abs(a), axis=0), 1e-9)).round(1).tolist()
+    )
+    if kind == "px4":
+        slope = np.abs(np.gradient(raw, temps, axis=0)).max(axis=0)
+        out["px4_staircase_dph"] = (slope * 1.0 * DPH).round(1).tolist()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fast warm-up (tau 25 s), 180 s limit per autopilot")
+    ap.add_argument("--autopilot", choices=("px4", "ardupilot", "both"), default="both")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", metavar="OUT.json")
+    args = ap.parse_args(argv)
+    tau, limit = (25.0, 180.0) if args.quick else (60.0, 420.0)
+    kinds = ("px4", "ardupilot") if args.autopilot == "both" else (args.autopilot,)
+    results: dict[str, Any] = {
+        "quick": args.quick,
+        "warmup_tau_s": tau,
+        "terms": TERMS,
+        "convergence": CONVERGENCE,
+        "seed": args.seed,
+    }
+    with tempfile.TemporaryDirectory(prefix="bench_mavlink_") as tmp_dir:
+        tmp = os.environ.get("BENCH_MAVLINK_KEEP") or tmp_dir
+        for kind in kinds:
+            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind)
+            params = r["flash"]["params"]
+            prof = PROFILES[kind](0)
+            lo, hi = params[prof.p_tmin], params[prof.p_tmax]  # type: ignore[attr-defined]
+            if not r["pushed_after_s"]:
+                results[kind] = {"pushed": False, "reason": (r["status"] or {}).get("reason")}
+                print(f"{kind}: no push within {limit:.0f} s: {results[kind]['reason']}")
+                continue
+            temps = np.linspace(lo, hi, 5)
+            res = {
+                "pushed": True,
+                "pushed_after_s": round(r["pushed_after_s"], 1),
+                "pushes": r["pushes"],
+                "tmin_c": lo,
+                "tmax_c": hi,
+                **offset_errors(kind, args.seed, params, temps),
+            }
+            results[kind] = res
+            print(
+                f"{kind}: first push after {res['pushed_after_s']} s; pushes {r['pushes']}; "
+                f"range of the set held at the end {lo:.1f}..{hi:.1f} degC"
+            )
+            for i, t in enumerate(res["temps_c"]):
+                print(f"  {t:6.1f} degC  before {res['before_dph'][i]}  after {res['after_dph'][i]} deg/h")
+            print(f"  improvement (max over range, per axis): {res['improvement_x']}x")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

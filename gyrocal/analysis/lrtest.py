@@ -1,0 +1,161 @@
+"""The significance test: a likelihood ratio under the fitted state-space error model.
+
+Why not the old block t-test: it compared held-out blocks as if they were independent, so few
+blocks, an effect concentrated in a few blocks, or real flicker (which inflates the spread between
+blocks) each defeated it (issue 12). Here the residual's wander is part of the model: per axis the
+error model of ``noisemodel`` (white + colour + flicker bank + walk) is fitted to the residual of
+the largest model (baseline + every candidate, so a real effect does not inflate the noise), and
+each candidate's columns are tested by generalised least squares under it:
+
+    D = Q(model so far) - Q(model so far + candidate),   Q = min_beta (y - X beta)' V^-1 (y - X beta)
+
+D is chi-square with the candidate's parameter count under the null when V is right. A nonlinear
+choice made on the data pays a look-elsewhere factor (the number of independent frequencies
+searched for a periodic cause, the warm-up grid). Each test costs one banded solve (linear in M).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from gyrocal.analysis.baseline import Problem, gram_solve, lstsq
+from gyrocal.analysis.candidates import F_MIN_HZ, WARMUP_TAUS_S, Candidate
+from gyrocal.analysis.gls import StateSpaceGLS
+from gyrocal.analysis.noisemodel import NoiseModel, fit_noise
+
+FGLS_ROUNDS = 2
+UPPER_SIGMA = 2.0
+"""The test's error model fits each Allan octave's upper 2-sigma limit (see ``fit_noise``)."""
+
+
+def gls_fit(prob: Problem, model: NoiseModel, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """GLS coefficients of y (M,) on x (M, P) under an error model."""
+    gls = StateSpaceGLS(model, prob.cols["t"], prob.usable.session)
+    g = gls.gram(np.column_stack([x, y]))
+    return gram_solve(g[:-1, :-1], g[:-1, -1], prob.n)
+
+
+@dataclass
+class AxisLR:
+    """The likelihood-ratio test of one axis: columns per cause and error models per nested model."""
+
+    prob: Problem
+    axis: int
+    cols: dict[str, np.ndarray]  # cause -> design columns (M, p)
+    look_elsewhere: dict[str, float]
+    models: dict[tuple[str, ...], NoiseModel] = field(default_factory=dict)
+    tests: dict[tuple[tuple[str, ...], str], tuple[float, float]] = field(default_factory=dict)
+
+    def design(self, causes: list[str] | tuple[str, ...]) -> np.ndarray:
+        return np.column_stack([self.prob.base, *[self.cols[c] for c in causes]])
+
+    def model_for(self, causes: list[str] | tuple[str, ...]) -> NoiseModel:
+        """The error model of baseline + ``causes``, by feasible GLS (cached).
+
+        Start from the model fitted on the baseline residual; estimate the coefficients by GLS under
+        it (GLS leaves wander to the noise, where least squares would let a trend column soak up a
+        slow flicker); refit the error model on that residual; repeat ``FGLS_ROUNDS`` times. A real
+        effect is then removed before the noise is fitted (it is not taken for a walk), and a
+        flicker is not removed by a column that only happens to look like it.
+        """
+        key = tuple(causes)
+        if key not in self.models:
+            y = self.prob.y[:, self.axis]
+            if not key:
+                beta, _ = lstsq(self.prob.base, y)
+                self.models[key] = fit_noise(y - self.prob.base @ beta, self.prob.rate_hz, upper=UPPER_SIGMA)
+            else:
+                model = self.model_for(())
+                x = self.design(key)
+                for _ in range(FGLS_ROUNDS):
+                    beta = gls_fit(self.prob, model, x, y)
+                    model = fit_noise(y - x @ beta, self.prob.rate_hz, upper=UPPER_SIGMA)
+                self.models[key] = model
+        return self.models[key]
+
+    @property
+    def model(self) -> NoiseModel:
+        return self.model_for(())
+
+    def test(self, chosen: list[str], cause: str) -> tuple[float, float]:
+        """(D, p-value with the look-elsewhere factor) for adding ``cause`` to ``chosen``.
+
+        The error model is the one fitted under the alternative (chosen + cause) by feasible GLS:
+        an effect left in the residual would otherwise be taken for wander (a warm-up for a walk).
+        Two-sided in the sense of a chi-square on the candidate's p columns.
+        """
+        key = (tuple(chosen), cause)
+        if key in self.tests:
+            return self.tests[key]
+        model = self.model_for([*chosen, cause])
+        gls = StateSpaceGLS(model, self.prob.cols["t"], self.prob.usable.session)
+        y = self.prob.y[:, self.axis]
+        g = gls.gram(np.column_stack([self.design([*chosen, cause]), y]))
+        n0 = self.prob.base.shape[1] + sum(self.cols[c].shape[1] for c in chosen)
+        d = _q(g, np.arange(n0), self.prob.n) - _q(g, np.arange(g.shape[0] - 1), self.prob.n)
+        k = max(int(self.cols[cause].shape[1]), 1)
+        p = float(min(1.0, self.look_elsewhere.get(cause, 1.0) * stats.chi2.sf(max(d, 0.0), k)))
+        self.tests[key] = (float(d), p)
+        return self.tests[key]
+
+
+def _q(gram: np.ndarray, idx: np.ndarray, n: int) -> float:
+    """GLS residual quadratic form of y on the columns idx (y is the Gram's last column)."""
+    iy = gram.shape[0] - 1
+    g = gram[np.ix_(idx, idx)]
+    b = gram[idx, iy]
+    beta = gram_solve(g, b, n)
+    return float(gram[iy, iy] - b @ beta)
+
+
+def search_factor(prob: Problem, cause: str) -> float:
+    """How many independent choices a nonlinear search made (look-elsewhere factor)."""
+    if cause == "periodic":
+        span = 0.0
+        for s in np.unique(prob.usable.session):
+            t = prob.cols["t"][prob.usable.session == s]
+            span += float(t.max() - t.min())
+        return max(1.0, (0.45 * prob.rate_hz - F_MIN_HZ) * span)
+    if cause == "warmup":
+        return float(len(WARMUP_TAUS_S))
+    return 1.0
+
+
+def build_axis_lr(prob: Problem, cands: list[Candidate], axis: int) -> AxisLR:
+    """The test of one axis over the regression candidates (the walk is a state, not a column)."""
+    regs = [c for c in cands if c.cause != "random_walk" and c.full.shape[1]]
+    return AxisLR(prob, axis, {c.cause: c.full for c in regs},
+                  {c.cause: search_factor(prob, c.cause) for c in regs})
+
+
+def heldout_walk(prob: Problem, model: NoiseModel, axis: int, chosen: list[Candidate]) -> np.ndarray:
+    """Held-out residual (M,) of baseline + chosen causes + the slow states (a Kalman smoother).
+
+    Per fold, the coefficients are fitted by GLS on the training rows and the slow states (walk,
+    flicker bank) are smoothed from the training rows' residual; a held-out row is predicted by both.
+    """
+    y = prob.y[:, axis]
+    out = np.empty_like(y)
+    for k in range(prob.n_folds):
+        test = prob.fold == k
+        if not test.any():
+            continue
+        x = np.column_stack([prob.base, *[c.folds[k] for c in chosen if c.cause != "random_walk"]])
+        gls = StateSpaceGLS(model, prob.cols["t"], prob.usable.session, (~test).astype(float))
+        g = gls.gram(np.column_stack([x, y]))
+        beta = gram_solve(g[:-1, :-1], g[:-1, -1], int((~test).sum()))
+        r = y - x @ beta
+        out[test] = (r - gls.smooth(r))[test]
+    return out
+
+
+def smooth_full(prob: Problem, model: NoiseModel, axis: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GLS fit of y on x (M, P) on all rows: (coefficients, slow-state estimate (M,) [deg/s])."""
+    y = prob.y[:, axis]
+    gls = StateSpaceGLS(model, prob.cols["t"], prob.usable.session)
+    g = gls.gram(np.column_stack([x, y]))
+    beta = gram_solve(g[:-1, :-1], g[:-1, -1], prob.n)
+    return beta, gls.smooth(y - x @ beta)

@@ -1,0 +1,72 @@
+"""The two noise causes, ``coloured_noise`` and ``bias_instability``: named by the Allan fit, valued
+by fidelity.
+
+Why separate from the regression causes: neither can be predicted, so neither lowers the held-out
+error; what they change is how well the simulation reproduces the sensor (DESIGN.md Contract 2).
+A component is named when (1) leaving it out of the error model's Allan-variance fit costs at least
+``NEED_MIN`` in weighted misfit (white noise alone gives about 0-2; a DLPF-coloured MPU-9150 gives
+hundreds), and (2) adding it to the simulation brings the measured and simulated Allan deviation
+closer by at least ``GAIN_MIN`` decades on the axis' worst session (the fidelity gain).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gyrocal.analysis.baseline import Problem
+from gyrocal.analysis.diagnostics import autocorrelation
+from gyrocal.analysis.noisemodel import NoiseModel, component_need
+from gyrocal.analysis.segments import AXES
+
+NEED_MIN = 30.0
+GAIN_MIN = 0.02
+TEST = ("Allan-variance fit of the error model with and without the component (weighted misfit "
+        f"increase >= {NEED_MIN:g}) and simulated-ensemble fidelity gain >= {GAIN_MIN} decades")
+
+
+def noise_findings(prob: Problem, resid: np.ndarray, models: dict[str, NoiseModel], fid: dict) -> list[dict]:
+    """Contract 2 findings for the noise causes (explained_fraction 0: they explain no held-out error)."""
+    need = {a: component_need(resid[:, k], prob.rate_hz) for k, a in enumerate(AXES)}
+    out = []
+    for cause, comp, stage in (("coloured_noise", "colour", "without_colour"),
+                               ("bias_instability", "flicker", "without_flicker")):
+        axes, gains = [], {}
+        for a in AXES:
+            gain = fid[stage][a] - fid["after"][a]
+            gains[a] = round(gain, 4)
+            if need[a][comp] >= NEED_MIN and gain >= GAIN_MIN:
+                axes.append(a)
+        if not axes:
+            continue
+        params: dict = {"fidelity_gain_decades": {a: gains[a] for a in axes},
+                        "allan_fit_need": {a: round(need[a][comp], 1) for a in axes}}
+        if cause == "coloured_noise":
+            params["acf_lag1"] = {a: round(float(autocorrelation(resid[:, AXES.index(a)], 1)[0]), 3)
+                                  for a in axes}
+            params["gauss_markov"] = {a: [{"tau_s": t, "sd_dps": float(np.sqrt(v))}
+                                          for t, v in models[a].fast]
+                                      for a in axes}
+            params["white_dps"] = {a: float(np.sqrt(models[a].white_var)) for a in axes}
+            what = "a short Gauss-Markov (low-pass) colour"
+        else:
+            params["flicker_bank"] = {a: [{"tau_s": t, "sd_dps": float(np.sqrt(v))}
+                                          for t, v in models[a].slow]
+                                      for a in axes}
+            params["bias_instability_dps"] = {a: _floor(models[a]) for a in axes}
+            what = "a flicker floor (a bank of slow Gauss-Markov processes)"
+        worst = max(axes, key=lambda a: gains[a])
+        out.append({
+            "cause": cause, "axes": axes, "explained_fraction": 0.0, "p_value": None, "test": TEST,
+            "params": params,
+            "evidence": (f"On axes {', '.join(axes)}, the measured Allan deviation needs {what}: "
+                         f"adding it to the simulation moves the ensemble {gains[worst]:.2f} decades "
+                         f"closer on axis {worst} (fidelity {fid[stage][worst]:.2f} -> "
+                         f"{fid['after'][worst]:.2f})."),
+        })
+    return out
+
+
+def _floor(m: NoiseModel) -> float:
+    """The minimum of the model's Allan deviation over the bank's taus [deg/s] (the read-off floor)."""
+    mm = 2.0 ** np.arange(0, 26)
+    return float(np.sqrt(np.min(m.avar(mm))))

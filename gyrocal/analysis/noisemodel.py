@@ -1,0 +1,213 @@
+"""The error model the significance test and the simulation use: white + coloured + flicker + walk.
+
+Why: a real MEMS gyro's residual is not white. A digital low-pass filter colours it at short lags,
+a bias-instability (flicker) floor makes the bias wander at mid tau, and a rate random walk rises at
+long tau. A test that treats the residual as white noise (or that only compares held-out blocks)
+either sees effects that are not there or loses those that are.
+
+The model, per axis, in deg/s:
+
+    residual = white (variance ``white_var`` per sample)
+             + a bank of first-order Gauss-Markov processes (correlation time T_j [s], variance v_j)
+             + a random walk of intensity ``walk_q`` [(deg/s)^2 / s]
+
+The bank's short members (T up to ``FAST_SAMPLES`` samples) are the colour (a sensor low-pass),
+its longer members approximate flicker (a sum of Gauss-Markov processes with spread time constants,
+the usual approximation of a 1/f spectrum). The variances are fitted to the overlapping Allan
+variance of the residual by non-negative least squares on the exact discrete Allan variance of each
+component, which is linear in the variances: fast, and free of the local optima of a likelihood
+search. The white level is read from that fit, not from first differences, which read low when the
+noise is coloured (a low-pass makes neighbouring samples alike).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize, stats
+
+FAST_SAMPLES = 4.0
+"""Gauss-Markov members with a correlation time up to this many samples are 'colour'."""
+FAST_TAUS_SAMPLES = (0.5, 1.0, 2.0, 4.0)
+SLOW_STEP = 4.0
+"""Ratio between successive slow (flicker-bank) correlation times."""
+
+
+@dataclass
+class NoiseModel:
+    """One axis' fitted error model (see the module docstring); variances in (deg/s)^2."""
+
+    rate_hz: float
+    white_var: float
+    gm: list[tuple[float, float]] = field(default_factory=list)  # (correlation time [s], variance)
+    walk_q: float = 0.0  # [(deg/s)^2 / s]
+    misfit: float = 0.0  # weighted squared misfit of the Allan fit (about one per octave when right)
+
+    def phi(self, tau_s: float) -> float:
+        return float(np.exp(-1.0 / (self.rate_hz * tau_s)))
+
+    @property
+    def fast(self) -> list[tuple[float, float]]:
+        return [(t, v) for t, v in self.gm if t * self.rate_hz <= FAST_SAMPLES and v > 0]
+
+    @property
+    def slow(self) -> list[tuple[float, float]]:
+        return [(t, v) for t, v in self.gm if t * self.rate_hz > FAST_SAMPLES and v > 0]
+
+    @property
+    def sample_sd(self) -> float:
+        """Per-sample SD of the high-frequency noise (white + colour) [deg/s]."""
+        return float(np.sqrt(self.white_var + sum(v for _, v in self.fast)))
+
+    @property
+    def lowfreq_white_var(self) -> float:
+        """White variance per sample with the colour's low-frequency power [(deg/s)^2].
+
+        A Gauss-Markov member much faster than the effects looked for acts on them as white noise of
+        variance v (1 + phi) / (1 - phi) (its spectral density at zero frequency).
+        """
+        out = self.white_var
+        for t, v in self.fast:
+            p = self.phi(t)
+            out += v * (1 + p) / (1 - p)
+        return float(out)
+
+    @property
+    def arw_dps_per_sqrt_hz(self) -> float:
+        """Angle random walk: the white rate density at low frequency [deg/s/sqrt(Hz)]."""
+        return float(np.sqrt(self.lowfreq_white_var / self.rate_hz))
+
+    def avar(self, m: np.ndarray) -> np.ndarray:
+        """Allan variance [(deg/s)^2] at cluster sizes m (samples) of the whole model."""
+        shapes, _ = avar_shapes(np.asarray(m, float), self.rate_hz, [t for t, _ in self.gm])
+        v = np.array([self.white_var, *[v for _, v in self.gm], self.walk_q])
+        return shapes @ v
+
+    def without_colour_and_flicker(self) -> NoiseModel:
+        """The white + walk part only (what the simulation had before the noise extension)."""
+        return NoiseModel(self.rate_hz, self.lowfreq_white_var, [], self.walk_q)
+
+    def to_dict(self) -> dict:
+        return {"white_dps": float(np.sqrt(self.white_var)),
+                "colour": [{"tau_s": t, "sd_dps": float(np.sqrt(v))} for t, v in self.fast],
+                "flicker_bank": [{"tau_s": t, "sd_dps": float(np.sqrt(v))} for t, v in self.slow],
+                "walk_dps_per_sqrt_s": float(np.sqrt(self.walk_q)),
+                "sample_sd_dps": self.sample_sd, "arw_dps_per_sqrt_hz": self.arw_dps_per_sqrt_hz}
+
+    def simulate(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """A gap-free series (n,) of this noise [deg/s] (for the fidelity ensemble)."""
+        from scipy.signal import lfilter
+
+        x = rng.normal(0.0, np.sqrt(self.white_var), n)
+        for t, v in self.gm:
+            p = self.phi(t)
+            e = rng.normal(0.0, np.sqrt(v * (1 - p * p)), n)
+            e[0] = rng.normal(0.0, np.sqrt(v))
+            x += lfilter([1.0], [1.0, -p], e)
+        if self.walk_q > 0:
+            x += np.cumsum(rng.normal(0.0, np.sqrt(self.walk_q / self.rate_hz), n))
+        return x
+
+
+def octave_m(n: int, max_fraction: float = 0.25) -> np.ndarray:
+    """Octave cluster sizes 1, 2, 4, ... up to ``max_fraction`` of n samples."""
+    top = max(1, int(n * max_fraction))
+    return 2 ** np.arange(int(np.floor(np.log2(top))) + 1)
+
+
+def overlapping_avar(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Overlapping Allan variance of a rate series x (N,) at cluster sizes m [samples]."""
+    cs = np.concatenate(([0.0], np.cumsum(x - np.mean(x))))
+    out = np.full(len(m), np.nan)
+    for i, k in enumerate(np.asarray(m, int)):
+        if 2 * k >= x.size:
+            continue
+        ybar = (cs[k:] - cs[:-k]) / k
+        d = ybar[k:] - ybar[:-k]
+        out[i] = 0.5 * float(np.mean(d * d))
+    return out
+
+
+def _gm_avar(m: np.ndarray, phi: float) -> np.ndarray:
+    """Exact Allan variance of a unit-variance discrete AR(1) with coefficient phi at cluster m."""
+    if phi <= 0:
+        return 1.0 / m
+    q = 1.0 - phi
+    pm = phi**m
+    var_sum = m * (1 + phi) / q - 2 * phi * (1 - pm) / q**2
+    cov_adj = phi * (1 - pm) ** 2 / q**2
+    return (var_sum - cov_adj) / m**2
+
+
+def avar_shapes(m: np.ndarray, rate_hz: float, gm_taus: list[float]) -> tuple[np.ndarray, list[str]]:
+    """Allan variance per unit variance of each component at cluster sizes m: (len(m), 2 + G).
+
+    Columns: white, each Gauss-Markov member (unit process variance), the walk (unit q)."""
+    cols = [1.0 / m]
+    names = ["white"]
+    for t in gm_taus:
+        cols.append(_gm_avar(m, float(np.exp(-1.0 / (rate_hz * t)))))
+        names.append(f"gm{t:g}")
+    cols.append((2 * m**2 + 1) / (6 * m) / rate_hz)
+    names.append("walk")
+    return np.column_stack(cols), names
+
+
+def bank_taus(rate_hz: float, n: int) -> list[float]:
+    """Correlation times [s] of the Gauss-Markov bank: fast ones, then slow ones up to n/4 samples."""
+    taus = [k / rate_hz for k in FAST_TAUS_SAMPLES]
+    t = 4 * FAST_SAMPLES
+    while t <= n / 4:
+        taus.append(t / rate_hz)
+        t *= SLOW_STEP
+    return taus
+
+
+def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: float = 0.0) -> NoiseModel:
+    """Fit the error model to a residual series x (N,) [deg/s] by NNLS on its Allan variance.
+
+    Each octave's relative error is about 1 / sqrt(N / m); the rows are weighted accordingly, so
+    the short taus (many clusters) fix the white level and the colour, the long ones the walk.
+    ``drop`` leaves components out ("colour", "flicker", "walk"), to measure what each is worth.
+    ``upper`` > 0 fits the upper confidence limit of each octave instead (that many sigmas of the
+    chi-square with the octave's degrees of freedom): the test's conservative model, because a short
+    log's long-tau octaves are few and can hide a slow wander that the test would take for an effect.
+    """
+    x = np.asarray(x, float)
+    n = x.size
+    m = octave_m(n).astype(float)
+    meas = overlapping_avar(x, m)
+    ok = np.isfinite(meas) & (meas > 0)
+    m, meas = m[ok], meas[ok]
+    if upper > 0:
+        edf = np.maximum(1.0, 3.0 * (n - 1) / (2.0 * m) - 2.0 * (n - 2) / n)
+        meas = meas * edf / stats.chi2.ppf(stats.norm.sf(upper), edf)
+    taus = bank_taus(rate_hz, n)
+    shapes, _ = avar_shapes(m, rate_hz, taus)
+    keep = np.ones(shapes.shape[1], dtype=bool)
+    nf = len(FAST_TAUS_SAMPLES)
+    if "colour" in drop:
+        keep[1 : 1 + nf] = False
+    if "flicker" in drop:
+        keep[1 + nf : -1] = False
+    if "walk" in drop:
+        keep[-1] = False
+    w = np.sqrt(n / m) / meas
+    a = shapes[:, keep] * w[:, None]
+    scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+    v, rnorm = optimize.nnls(a / scale, w * meas)
+    v = v / scale
+    full = np.zeros(shapes.shape[1])
+    full[keep] = v
+    gm = [(t, float(vv)) for t, vv in zip(taus, full[1:-1], strict=True) if vv > 0]
+    return NoiseModel(rate_hz, float(full[0]), gm, float(full[-1]), float(rnorm**2))
+
+
+def component_need(x: np.ndarray, rate_hz: float) -> dict[str, float]:
+    """How much worse the Allan fit gets without each component (increase of the weighted misfit).
+
+    About 1 per octave is noise; a component a log really has costs tens to thousands.
+    """
+    full = fit_noise(x, rate_hz).misfit
+    return {c: fit_noise(x, rate_hz, (c,)).misfit - full for c in ("colour", "flicker", "walk")}

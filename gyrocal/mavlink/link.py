@@ -1,0 +1,425 @@
+"""``MavlinkLink``: a PX4 or ArduPilot autopilot behind the daemon's ``Link`` seam.
+
+It speaks MAVLink 2 on the wire (pymavlink's own connection strings: a serial device with its
+``baudrate``, ``udp:``/``udpin:`` to listen, ``udpout:``, ``tcp:``) and the daemon's vocabulary
+(gyrocal.protocol.messages) on the other side:
+
+- each boot: HEARTBEAT -> AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE) and the IMU stream
+  (MAV_CMD_SET_MESSAGE_INTERVAL: HIGHRES_IMU, falling back to RAW_IMU/SCALED_IMUn when none comes)
+  -> read the compensation parameters -> ``Hello``; then ``Sample`` per IMU message;
+- ``CoeffWrite`` -> :class:`~gyrocal.mavlink.paramtx.ParamPush` -> ``CoeffAck`` / ``CoeffNak``;
+- ``CoeffRead`` -> read the parameters -> ``CoeffReport``; ``HelloRequest`` -> ``Hello``.
+
+Samples as the daemon expects them: the daemon computes ``raw = out + Q_reported(T)``. The link adds
+to each sample the difference between what the autopilot really subtracts (clamped to [TMIN, TMAX],
+and, for a PX4 whose TC_G_ENABLE was off at boot, nothing until the reboot) and Q_reported(T), so
+that equation holds everywhere. Samples during a push are dropped (``push_gap_samples``): the
+compensation changes under them parameter by parameter.
+
+Threads: everything MAVLink happens on the reader thread (``_receive``); ``send`` only queues the
+daemon's request. Capabilities: ``term_sets`` and ``reboot_required``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from gyrocal.daemon.ring import RingBuffer
+from gyrocal.drivers.base import ControlCallback, EventCallback, Link
+from gyrocal.errors import LinkError
+from gyrocal.mavlink import imu as imu_mod
+from gyrocal.mavlink import pymav
+from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamSet
+from gyrocal.mavlink.profiles import BY_MAV_AUTOPILOT, PROFILES, Profile
+from gyrocal.mavlink.requests import UnitRequests
+from gyrocal.mavlink.state import LinkState
+from gyrocal.protocol.messages import CoeffRead, CoeffWrite, Hello, HelloRequest
+from gyrocal.protocol.termsets import TEMP_POLY3_TERMS, terms_id
+
+log = logging.getLogger(__name__)
+
+MAV_COMP_ID_AUTOPILOT1 = 1
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+MAV_AUTOPILOT_INVALID = 8
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+MSG_ID = {
+    "HIGHRES_IMU": 105,
+    "RAW_IMU": 27,
+    "SCALED_IMU": 26,
+    "SCALED_IMU2": 116,
+    "SCALED_IMU3": 129,
+    "AUTOPILOT_VERSION": 148,
+}
+CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE = 511, 512
+TEMP_RATE_HZ = 10.0
+STREAM_STALL_S = 1.0
+"""IMU silence [s] with heartbeats present after which the stream is requested again."""
+
+
+class MavlinkLink(UnitRequests, Link):
+    """A link to one IMU of one autopilot. See the module docstring.
+
+    ``autopilot``: "px4", "ardupilot" or None (take it from the heartbeat); a heartbeat of another
+    kind is a fault (one error line, every CoeffWrite NAKed). ``instance``: IMU 0..2. ``rate_hz``:
+    IMU stream rate asked for [Hz]. ``state_file``: where versions and boot counts persist.
+    """
+
+    kind = "mavlink"
+
+    def __init__(
+        self,
+        url: str,
+        ring: RingBuffer,
+        on_control: ControlCallback,
+        on_event: EventCallback | None = None,
+        *,
+        baudrate: int = 921600,
+        autopilot: str | None = None,
+        instance: int = 0,
+        rate_hz: float = 250.0,
+        state_file: str | None = None,
+        source_system: int = 255,
+        heartbeat_timeout_s: float = 3.0,
+        param_timeout_s: float = 0.5,
+        param_retries: int = 4,
+        highres_wait_s: float = 2.0,
+        tmin_c: float | None = None,
+        tmax_c: float | None = None,
+        **link_kwargs: Any,
+    ) -> None:
+        super().__init__(ring, on_control, on_event, **link_kwargs)
+        if autopilot is not None and autopilot not in PROFILES:
+            raise LinkError(f"mavlink link: autopilot {autopilot!r} unknown; write px4 or ardupilot")
+        self.url, self.baudrate = str(url), int(baudrate)
+        self.expected = autopilot
+        self.instance, self.rate_hz = int(instance), float(rate_hz)
+        self.source_system = int(source_system)
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.param_timeout_s, self.param_retries = param_timeout_s, param_retries
+        self.highres_wait_s = highres_wait_s
+        self.tmin_c, self.tmax_c = tmin_c, tmax_c
+        self.state = LinkState(state_file)
+        self._conn: Any = None
+        self._requests: collections.deque[Any] = collections.deque()
+        self.fault: str | None = None
+        self._mav_stats = {"frames": 0, "bytes": 0, "bad_frames": 0}
+        self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
+        self._reset_boot()
+
+    # ---- capabilities (the engine's use of them comes in phase 2) -------------------------------
+    @property
+    def term_sets(self) -> dict[int, tuple[str, ...]]:
+        """Term sets this unit can hold: one cubic polynomial in temperature per axis, no gravity terms."""
+        return {terms_id(TEMP_POLY3_TERMS[:k]): TEMP_POLY3_TERMS[:k] for k in (4, 3, 2)}
+
+    @property
+    def reboot_required(self) -> bool | None:
+        """Whether a pushed set takes effect only after a reboot (None until the unit is known)."""
+        if self.profile is None or self._boot_params is None:
+            return None
+        return self.profile.needs_reboot(self._boot_params.get(self.profile.enable.name))
+
+    @property
+    def target(self) -> str:
+        return self.url
+
+    # ---- Link hooks ------------------------------------------------------------------------------
+    def _open(self) -> None:
+        mavutil = pymav.mavutil()
+        try:
+            conn = mavutil.mavlink_connection(
+                self.url,
+                baud=self.baudrate,
+                source_system=self.source_system,
+                source_component=MAV_COMP_ID_ONBOARD_COMPUTER,
+                autoreconnect=False,
+                dialect="ardupilotmega",
+            )
+        except Exception as err:  # pymavlink raises serial, socket and plain errors alike
+            raise LinkError(
+                f"mavlink connection {self.url!r} cannot be opened ({err}); check the device "
+                "path and baud rate, or the udpin:/udpout:/tcp: address"
+            ) from err
+        conn.mav.robust_parsing = True
+        self._conn = conn
+        self._reset_boot()
+
+    def _close(self) -> None:
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            conn.close()
+
+    def _transmit(self, msg: Any) -> None:
+        if not isinstance(msg, CoeffWrite | CoeffRead | HelloRequest):
+            raise LinkError(f"mavlink link cannot send {type(msg).__name__}")
+        self._requests.append(msg)
+
+    def _decoder_stats(self) -> dict[str, int]:
+        return dict(self._mav_stats)
+
+    def _transport_stats(self) -> dict[str, Any]:
+        return {
+            **self._extra,
+            "autopilot": self.profile.name if self.profile else None,
+            "fault": self.fault,
+            "imu_source": self._source,
+            "reboot_required": self.reboot_required,
+        }
+
+    def _receive(self) -> list[Any]:
+        conn = self._conn
+        if conn is None:
+            raise OSError("connection closed")
+        out: list[Any] = []
+        m = conn.recv_match(blocking=True, timeout=self.poll_s)
+        n = 0
+        while m is not None and n < 2000:
+            self._handle(m, out)
+            n += 1
+            m = conn.recv_msg()
+        self._mav_stats["bytes"] = int(getattr(conn.mav, "total_bytes_received", 0))
+        self._mav_stats["bad_frames"] = int(getattr(conn.mav, "total_receive_errors", 0))
+        now = time.monotonic()
+        while self._requests:
+            self._serve(self._requests.popleft(), now, out)
+        self._tick(now, out)
+        return out
+
+    # ---- per boot --------------------------------------------------------------------------------
+    def _reset_boot(self) -> None:
+        self.profile: Profile | None = PROFILES[self.expected](self.instance) if self.expected else None
+        self.target_system: int | None = None
+        self.armed = False
+        self._boot_params: dict[str, float] | None = None
+        self._params: dict[str, float] = {}
+        self._adj: tuple[np.ndarray, dict[str, float]] | None = None
+        self._version_msg: Any = None
+        self._hello: Hello | None = None
+        self._reader: ParamReadAll | None = None
+        self._push: ParamPush | None = None
+        self._push_write: CoeffWrite | None = None
+        self._report_wanted = False
+        self._source: str | None = None
+        self._stream_asked_at: float | None = None
+        self._temp_c: float | None = None
+        self._t_last: float | None = None
+        self._imu_rx: float | None = None  # monotonic time of the last IMU message
+        self._asked_again: float = 0.0
+        self._seq = 0
+        self._known_new = False
+        self._range: list[float] | None = None
+        self._boot = imu_mod.BootDetector(self.heartbeat_timeout_s)
+
+    def _new_boot(self, out: list[Any], why: str) -> None:
+        log.info("mavlink %s: new boot detected (%s)", self.url, why)
+        if self._push is not None:
+            self._push.abort(f"the autopilot rebooted ({why})")
+            self._finish_push(out)
+        keep_target, keep_profile = self.target_system, self.profile
+        self._reset_boot()
+        self.target_system, self.profile = keep_target, keep_profile
+        self._known_new = True
+        self._extra["boots_seen"] += 1
+
+    def _handle(self, m: Any, out: list[Any]) -> None:
+        kind = m.get_type()
+        if kind == "BAD_DATA":
+            return
+        self._mav_stats["frames"] += 1
+        now = time.monotonic()
+        if kind == "HEARTBEAT":
+            self._on_heartbeat(m, now, out)
+            return
+        if self.target_system is None or m.get_srcSystem() != self.target_system:
+            return
+        if kind == "PARAM_VALUE":
+            name = m.param_id if isinstance(m.param_id, str) else m.param_id.decode("ascii", "replace")
+            name = name.rstrip("\x00")
+            job = self._push or self._reader
+            if job is not None:
+                job.on_value(name, float(m.param_value), int(m.param_type), now)
+        elif kind == "AUTOPILOT_VERSION":
+            self._version_msg = m
+        elif kind == "COMMAND_ACK":
+            if m.command == CMD_SET_MESSAGE_INTERVAL and m.result != 0 and self._source is None:
+                self._fallback(now)
+        else:
+            self._on_imu(m, kind, now, out)
+
+    def _on_heartbeat(self, m: Any, now: float, out: list[Any]) -> None:
+        if m.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1 or m.autopilot == MAV_AUTOPILOT_INVALID:
+            return  # a ground station, a camera, another companion
+        if self.target_system is None:
+            self.target_system = m.get_srcSystem()
+        elif m.get_srcSystem() != self.target_system:
+            return
+        seen = BY_MAV_AUTOPILOT.get(int(m.autopilot))
+        if seen is None or (self.expected is not None and seen != self.expected):
+            self._set_fault(
+                f"the autopilot at {self.url} reports MAV_AUTOPILOT {m.autopilot} "
+                f"({seen or 'unsupported'}); this link is configured for {self.expected or 'px4/ardupilot'}"
+            )
+            return
+        if self.profile is None:
+            self.profile = PROFILES[seen](self.instance)
+        self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+        if self._boot.on_heartbeat(now):
+            self._new_boot(out, "heartbeat returned after silence")
+        if self._stream_asked_at is None:
+            self._ask_identity_and_stream(now)
+
+    def _set_fault(self, why: str) -> None:
+        if self.fault != why:
+            log.error("mavlink link: %s", why)
+            self._emit("unit_error", why)
+        self.fault = why
+
+    def _ask_identity_and_stream(self, now: float) -> None:
+        self._stream_asked_at = now
+        self._command(CMD_REQUEST_MESSAGE, MSG_ID["AUTOPILOT_VERSION"])
+        self._ask_streams()
+        self._reader = ParamReadAll(
+            self.profile,
+            self._send_param,
+            now,  # type: ignore[arg-type]
+            timeout_s=self.param_timeout_s,
+            retries=self.param_retries,
+        )
+
+    def _ask_streams(self) -> None:
+        temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
+        if self._source in (None, "HIGHRES_IMU"):
+            self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID["HIGHRES_IMU"], 1e6 / self.rate_hz)
+        rate = self.rate_hz if self._source == temp_msg else TEMP_RATE_HZ
+        self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID[temp_msg], 1e6 / rate)
+
+    def _fallback(self, now: float) -> None:
+        temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
+        log.info("mavlink %s: no HIGHRES_IMU; using %s at %.0f Hz", self.url, temp_msg, self.rate_hz)
+        self._source = temp_msg
+        self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID[temp_msg], 1e6 / self.rate_hz)
+
+    def _command(self, cmd: int, *params: float) -> None:
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        self._conn.mav.command_long_send(self.target_system or 1, MAV_COMP_ID_AUTOPILOT1, cmd, 0, *p)
+
+    def _send_param(self, req: object) -> None:
+        tgt = self.target_system or 1
+        if isinstance(req, ParamSet):
+            self._conn.mav.param_set_send(
+                tgt, MAV_COMP_ID_AUTOPILOT1, req.name.encode("ascii"), req.wire, req.ptype
+            )
+        elif isinstance(req, ParamRead):
+            self._conn.mav.param_request_read_send(tgt, MAV_COMP_ID_AUTOPILOT1, req.name.encode("ascii"), -1)
+
+    # ---- samples ---------------------------------------------------------------------------------
+    def _on_imu(self, m: Any, kind: str, now: float, out: list[Any]) -> None:
+        if self.profile is None:
+            return
+        temp_msg = imu_mod.temp_message(self.profile.name, self.instance)
+        if kind not in ("HIGHRES_IMU", temp_msg):
+            return
+        if kind == "HIGHRES_IMU" and self.instance != 0 and self.profile.name == "px4":
+            return  # PX4's HIGHRES_IMU is the primary IMU; other instances come as SCALED_IMU2/3
+        r = imu_mod.decode(m)
+        if r is None:
+            return
+        if self._boot.on_time(r.t_s):
+            self._new_boot(out, "boot time went back")
+            self._stream_asked_at = None
+            self._ask_identity_and_stream(now)
+        self._t_last = r.t_s
+        self._imu_rx = now
+        if kind == temp_msg and r.temp_c is not None:
+            self._temp_c = r.temp_c
+        if self._source is None and kind == "HIGHRES_IMU":
+            self._source = "HIGHRES_IMU"
+        if kind != self._source:
+            return
+        self._seq += 1
+        if self._hello is None:
+            return
+        if self._temp_c is None:
+            self._extra["no_temperature_samples"] += 1
+            return
+        if self._push is not None:
+            self._extra["push_gap_samples"] += 1
+            return
+        t = self._temp_c
+        self._range = [min(self._range[0], t), max(self._range[1], t)] if self._range else [t, t]
+        adj = self._adjust(t)
+        gyro = tuple(float(g + a) for g, a in zip(r.gyro_dps, adj, strict=True))
+        out.append(imu_mod.to_sample(self._seq - 1, imu_mod.ImuReading(r.t_s, gyro, r.accel_g, t), t))  # type: ignore[arg-type]
+
+    def _tick(self, now: float, out: list[Any]) -> None:
+        if (
+            self._boot.last_hb is not None
+            and now - self._boot.last_hb > self.heartbeat_timeout_s
+            and self._hello is not None
+            and self._push is not None
+        ):
+            self._push.abort("heartbeat lost")
+            self._finish_push(out)
+        if (
+            self._imu_rx is not None
+            and now - self._imu_rx > STREAM_STALL_S
+            and now - self._asked_again > 1.0
+            and self._boot.last_hb is not None
+            and now - self._boot.last_hb < self.heartbeat_timeout_s
+        ):
+            # heartbeats but no IMU stream: a rebooted autopilot forgets SET_MESSAGE_INTERVAL. Asking
+            # again is harmless, and the resumed stream's time stamps show whether it was a new boot.
+            self._asked_again = now
+            self._ask_streams()
+        if (
+            self._source is None
+            and self._stream_asked_at is not None
+            and now - self._stream_asked_at > self.highres_wait_s
+            and self.profile is not None
+        ):
+            self._fallback(now)
+        if self._push is not None:
+            self._push.tick(now)
+            self._finish_push(out)
+        if self._reader is not None:
+            self._reader.tick(now)
+            if self._reader.finished:
+                self._after_read(out)
+        if self._hello is None and self._ready():
+            self._say_hello(out)
+
+    def _ready(self) -> bool:
+        return (
+            self.profile is not None
+            and self._version_msg is not None
+            and self._boot_params is not None
+            and self._t_last is not None
+            and self.fault is None
+        )
+
+    def _say_hello(self, out: list[Any]) -> None:
+        v = self._version_msg
+        self.serial = imu_mod.derive_serial(
+            int(v.uid), list(getattr(v, "uid2", []) or []), self.instance, self.target_system or 0
+        )
+        boot_wall = time.time() - float(self._t_last or 0.0)
+        boots = self.state.note_boot(self.serial, boot_wall, known_new=self._known_new)
+        self._hello = Hello(
+            self.serial, imu_mod.fw_text(v.flight_sw_version), boots, int(round(self.rate_hz))
+        )
+        log.info(
+            "mavlink %s: %s unit %d (uid %x, IMU %d), boot %d, reboot needed for a push: %s",
+            self.url,
+            self.profile.name,
+            self.serial,
+            int(v.uid),
+            self.instance,
+            boots,
+            self.reboot_required,
+        )  # type: ignore[union-attr]
+        out.append(self._hello)

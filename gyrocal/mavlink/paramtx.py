@@ -1,0 +1,314 @@
+"""The parameter push and read as pure logic: PARAM_SET, its PARAM_VALUE echo, retries, read-back.
+
+Why a state machine of its own: writing an autopilot's compensation is the one moment we change the
+vehicle, and each failure (a lost echo, a rejected value, a reboot, silence) must end in a known
+state. The guarantee is ours (docs/protocol.md's atomic apply) carried over to parameters, which
+the autopilot applies one by one:
+
+    read context -> ENABLE=0 -> write each coefficient (confirm each echo) -> read all back (verify)
+    -> ENABLE=1 -> read the whole set back
+
+With compensation disabled the autopilot never evaluates a half-written set (PX4 reloads TC_Gn_*
+only while TC_G_ENABLE=1; ArduPilot's correct_sensor returns at once unless ENABLE=1). A failure
+after ENABLE=0 restores the previous coefficients and re-enables them only when every one is
+confirmed; otherwise compensation stays off. The unit therefore holds the old set, the new one, or
+none: never part of one.
+
+Pure: no I/O, no threads. ``send`` receives :class:`ParamSet` / :class:`ParamRead`; time comes in as
+``now`` [s, monotonic], so tests drive it deterministically.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gyrocal.mavlink.profiles import Profile, decode_param, encode_param
+from gyrocal.protocol.messages import NakReason
+
+log = logging.getLogger("gyrocal.mavlink.push")
+
+
+@dataclass(frozen=True)
+class ParamSet:
+    """Host -> autopilot PARAM_SET; ``wire`` is the encoded float (see ``encode_param``)."""
+
+    name: str
+    wire: float
+    ptype: int
+
+
+@dataclass(frozen=True)
+class ParamRead:
+    """Host -> autopilot PARAM_REQUEST_READ by name (param_index = -1)."""
+
+    name: str
+
+
+@dataclass
+class _Op:
+    name: str
+    value: float | None = None  # None: read
+
+
+class OpRunner:
+    """Runs parameter reads and writes one at a time, each confirmed by its PARAM_VALUE.
+
+    A write is confirmed when the echo's value equals the value sent (as the autopilot stores it);
+    an echo with another value is a rejection (the autopilot clamped or refused it) and stops the
+    run. Silence for ``timeout_s`` resends the same request (PARAM_SET is idempotent), at most
+    ``retries`` times in all.
+    """
+
+    def __init__(
+        self, profile: Profile, send: Callable[[object], None], timeout_s: float, retries: int
+    ) -> None:
+        self.profile, self.send = profile, send
+        self.types = profile.types()
+        self.timeout_s, self.retries = timeout_s, retries
+        self.values: dict[str, float] = {}
+        self.error: str | None = None
+        self.rejected = False
+        self.resends = 0
+        self._ops: list[_Op] = []
+        self._tries = 0
+        self._deadline = 0.0
+
+    @property
+    def done(self) -> bool:
+        return not self._ops or self.error is not None
+
+    def start(self, ops: list[_Op], now: float) -> None:
+        self._ops, self.error, self.rejected = list(ops), None, False
+        self._issue(now, first=True)
+
+    def _issue(self, now: float, first: bool) -> None:
+        if not self._ops:
+            return
+        op = self._ops[0]
+        self._tries = 1 if first else self._tries + 1
+        self._deadline = now + self.timeout_s
+        if op.value is None:
+            self.send(ParamRead(op.name))
+        else:
+            ptype = self.types[op.name]
+            self.send(ParamSet(op.name, encode_param(op.value, ptype, self.profile.bytewise), ptype))
+
+    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
+        value = decode_param(wire, self.types.get(name, ptype), self.profile.bytewise)
+        if name in self.types:
+            self.values[name] = value
+        if self.done or name != self._ops[0].name:
+            return
+        op = self._ops[0]
+        if op.value is not None and value != op.value:
+            self.error = f"{name}: the autopilot answered {value!r} to a write of {op.value!r} (rejected)"
+            self.rejected = True
+            return
+        self._ops.pop(0)
+        self._issue(now, first=True)
+
+    def tick(self, now: float) -> None:
+        if self.done or now < self._deadline:
+            return
+        if self._tries >= self.retries:
+            op = self._ops[0]
+            what = "read" if op.value is None else "write"
+            self.error = (
+                f"{op.name}: no PARAM_VALUE after {self._tries} {what} request(s) (the autopilot "
+                "went silent, or this firmware lacks the parameter)"
+            )
+            return
+        self.resends += 1
+        log.info("no PARAM_VALUE for %s within %.1f s; asking again", self._ops[0].name, self.timeout_s)
+        self._issue(now, first=False)
+
+
+class Phase(enum.Enum):
+    READ_CONTEXT = "read_context"
+    DISABLE = "disable"
+    WRITE = "write"
+    VERIFY = "verify"
+    ENABLE = "enable"
+    READ_BACK = "read_back"
+    RESTORE = "restore"
+    RESTORE_ENABLE = "restore_enable"
+    DONE = "done"
+    FAILED = "failed"
+
+
+@dataclass
+class PushOutcome:
+    """How a push ended: ``params`` is the final read of the whole set (what the unit holds)."""
+
+    ok: bool
+    reason: str = ""
+    nak: int = 0
+    params: dict[str, float] = field(default_factory=dict)
+    target: dict[str, float] = field(default_factory=dict)
+    restored: bool = False
+
+
+class ParamPush:
+    """One push of Q (3, 4) [deg/s] valid over [tmin, tmax] degC. See the module docstring."""
+
+    def __init__(
+        self,
+        profile: Profile,
+        q_dps: np.ndarray,
+        tmin: float,
+        tmax: float,
+        send: Callable[[object], None],
+        now: float,
+        *,
+        timeout_s: float = 0.5,
+        retries: int = 4,
+    ) -> None:
+        self.profile = profile
+        self.q = np.asarray(q_dps, dtype=np.float64)
+        self.tmin, self.tmax = float(tmin), float(tmax)
+        self.io = OpRunner(profile, send, timeout_s, retries)
+        self.phase = Phase.READ_CONTEXT
+        self.outcome: PushOutcome | None = None
+        self.before: dict[str, float] = {}
+        self.target: dict[str, float] = {}
+        self._fail: tuple[str, int] | None = None
+        self._restored = False
+        self.io.start([_Op(p.name) for p in profile.all_params()], now)
+
+    @property
+    def finished(self) -> bool:
+        return self.outcome is not None
+
+    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
+        if self.finished:
+            return
+        self.io.on_value(name, wire, ptype, now)
+        self._advance(now)
+
+    def tick(self, now: float) -> None:
+        if self.finished:
+            return
+        self.io.tick(now)
+        self._advance(now)
+
+    def abort(self, reason: str) -> None:
+        """The autopilot rebooted or the link went down: nothing more can be confirmed."""
+        if not self.finished:
+            log.error("push aborted in phase %s: %s", self.phase.value, reason)
+            self.phase = Phase.FAILED
+            self.outcome = PushOutcome(False, reason, int(NakReason.BUSY), dict(self.io.values), self.target)
+
+    # -- phases ---------------------------------------------------------------------------------
+    def _advance(self, now: float) -> None:
+        if not self.io.done:
+            return
+        err = self.io.error
+        p = self.profile
+        if self.phase is Phase.READ_CONTEXT:
+            if err:
+                return self._finish(False, err, NakReason.UNKNOWN_TERMS)
+            self.before = dict(self.io.values)
+            why = p.problem(self.before) or p.check_range(self.q, self.tmin, self.tmax)
+            if why:
+                return self._finish(
+                    False, why, NakReason.OUT_OF_RANGE if "offset" in why else NakReason.UNKNOWN_TERMS
+                )
+            self.target = p.to_params(self.q, self.before, self.tmin, self.tmax)
+            self._go(Phase.DISABLE, [_Op(p.enable.name, 0.0)], now)
+        elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE):
+            self._fail = (err, int(NakReason.OUT_OF_RANGE if self.io.rejected else NakReason.BUSY))
+            log.error("push failed in phase %s: %s; restoring the previous set", self.phase.value, err)
+            self._go(
+                Phase.RESTORE,
+                [_Op(c.name, self.before[c.name]) for c in p.coeffs if c.name in self.before],
+                now,
+            )
+        elif self.phase is Phase.DISABLE:
+            self._go(Phase.WRITE, [_Op(k, v) for k, v in self.target.items()], now)
+        elif self.phase is Phase.WRITE:
+            self._go(Phase.VERIFY, [_Op(k) for k in self.target], now)
+        elif self.phase is Phase.VERIFY:
+            bad = [k for k, v in self.target.items() if self.io.values.get(k) != v]
+            if bad:
+                self._fail = (f"read-back differs for {', '.join(bad)}", int(NakReason.OUT_OF_RANGE))
+                self._go(
+                    Phase.RESTORE,
+                    [_Op(c.name, self.before[c.name]) for c in p.coeffs if c.name in self.before],
+                    now,
+                )
+            else:
+                self._go(Phase.ENABLE, [_Op(p.enable.name, 1.0)], now)
+        elif self.phase is Phase.ENABLE:
+            self._go(Phase.READ_BACK, [_Op(x.name) for x in p.all_params()], now)
+        elif self.phase is Phase.READ_BACK:
+            if err:
+                return self._finish(False, f"final read-back: {err}", NakReason.BUSY)
+            ok = p.is_enabled(self.io.values) and all(
+                self.io.values.get(k) == v for k, v in self.target.items()
+            )
+            self._finish(ok, "" if ok else "the final read-back differs from the set written", NakReason.BUSY)
+        elif self.phase is Phase.RESTORE:
+            self._restored = err is None
+            if err is None and self.before.get(p.enable.name) == 1.0:
+                self._go(Phase.RESTORE_ENABLE, [_Op(p.enable.name, 1.0)], now)
+            else:
+                self._go(Phase.RESTORE_ENABLE, [], now)
+        elif self.phase is Phase.RESTORE_ENABLE:
+            self._restored = self._restored and err is None
+            self.phase = Phase.FAILED
+            self.io.start([_Op(x.name) for x in p.all_params()], now)
+        elif self.phase is Phase.FAILED:
+            reason, nak = self._fail or ("push failed", int(NakReason.BUSY))
+            self.outcome = PushOutcome(
+                False, reason, nak, dict(self.io.values), self.target, restored=self._restored
+            )
+
+    def _go(self, phase: Phase, ops: list[_Op], now: float) -> None:
+        self.phase = phase
+        self.io.start(ops, now)
+        if not ops:
+            self._advance(now)
+
+    def _finish(self, ok: bool, reason: str, nak: NakReason) -> None:
+        self.phase = Phase.DONE if ok else Phase.FAILED
+        self.outcome = PushOutcome(ok, reason, 0 if ok else int(nak), dict(self.io.values), self.target)
+
+
+class ParamReadAll:
+    """Read every parameter of a profile (COEFF_READ, and the context at a switch-on)."""
+
+    def __init__(
+        self,
+        profile: Profile,
+        send: Callable[[object], None],
+        now: float,
+        *,
+        timeout_s: float = 0.5,
+        retries: int = 4,
+    ) -> None:
+        self.profile = profile
+        self.io = OpRunner(profile, send, timeout_s, retries)
+        self.io.start([_Op(p.name) for p in profile.all_params()], now)
+
+    @property
+    def finished(self) -> bool:
+        return self.io.done
+
+    @property
+    def error(self) -> str | None:
+        return self.io.error
+
+    @property
+    def values(self) -> Mapping[str, float]:
+        return self.io.values
+
+    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
+        self.io.on_value(name, wire, ptype, now)
+
+    def tick(self, now: float) -> None:
+        self.io.tick(now)

@@ -1,0 +1,224 @@
+"""The daemon's requests to a MAVLink unit: ``CoeffWrite`` (the push), ``CoeffRead``, ``HelloRequest``.
+
+A mixin of :class:`~gyrocal.mavlink.link.MavlinkLink`, kept apart so that each module holds one thing:
+link.py speaks MAVLink and turns the stream into samples; this module turns the daemon's requests into
+parameter transactions (gyrocal/mavlink/paramtx.py) and their outcomes into ``CoeffAck`` /
+``CoeffNak`` / ``CoeffReport``, and keeps the samples consistent with what it reports (``_adjust``).
+Everything here runs on the link's reader thread.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from gyrocal.errors import LinkError
+from gyrocal.mavlink.paramtx import ParamPush, ParamReadAll
+from gyrocal.mavlink.poly import evaluate
+from gyrocal.protocol.messages import (
+    CoeffAck,
+    CoeffNak,
+    CoeffRead,
+    CoeffReport,
+    CoeffWrite,
+    HelloRequest,
+    NakReason,
+    coeff_set_crc,
+)
+from gyrocal.protocol.termsets import TEMP_POLY3_ID, TEMP_POLY3_TERMS
+
+if TYPE_CHECKING:
+    from gyrocal.mavlink.link import MavlinkLink
+
+log = logging.getLogger("gyrocal.mavlink.link")
+
+CMD_REBOOT = 246
+"""MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN."""
+
+
+class UnitRequests:
+    """The request half of MavlinkLink (see the module docstring)."""
+
+    def _serve(self: MavlinkLink, msg: Any, now: float, out: list[Any]) -> None:
+        if msg == "reboot":
+            if not self.armed:
+                self._command(CMD_REBOOT, 1.0)
+        elif isinstance(msg, HelloRequest):
+            if self._hello is not None:
+                out.append(self._hello)
+        elif isinstance(msg, CoeffRead):
+            if self.profile is None or self.fault:
+                return
+            self._report_wanted = True
+            if self._reader is None and self._push is None:
+                self._reader = ParamReadAll(
+                    self.profile,
+                    self._send_param,
+                    now,
+                    timeout_s=self.param_timeout_s,
+                    retries=self.param_retries,
+                )
+        elif isinstance(msg, CoeffWrite):
+            self._start_push(msg, now, out)
+
+    def _start_push(self: MavlinkLink, msg: CoeffWrite, now: float, out: list[Any]) -> None:
+        crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
+        why, reason = self._refuse(msg)
+        if why:
+            log.warning("mavlink link: push of v%d refused: %s", msg.version, why)
+            out.append(CoeffNak(msg.version, crc, int(reason)))
+            return
+        lo, hi = self._temp_bounds()
+        self._push_write = msg
+        self._reader = None
+        q = np.zeros((3, 4))
+        q[:, : len(msg.coeffs_dps[0])] = np.asarray(msg.coeffs_dps)  # a shorter prefix: higher powers 0
+        self._push = ParamPush(
+            self.profile,
+            q,
+            lo,
+            hi,
+            self._send_param,
+            now,  # type: ignore[arg-type]
+            timeout_s=self.param_timeout_s,
+            retries=self.param_retries,
+        )
+
+    def _refuse(self: MavlinkLink, msg: CoeffWrite) -> tuple[str, NakReason]:
+        if self.fault:
+            return self.fault, NakReason.UNKNOWN_TERMS
+        names = self.term_sets.get(msg.terms_id)
+        if names is None or len(msg.coeffs_dps[0]) != len(names):
+            return (
+                f"terms_id 0x{msg.terms_id:04x} is not the temperature polynomial this autopilot holds "
+                f"(0x{TEMP_POLY3_ID:04x}: {', '.join(TEMP_POLY3_TERMS)}, or its first 3 or 2 terms)"
+            ), NakReason.UNKNOWN_TERMS
+        if self.profile is None or self._hello is None:
+            return "the autopilot is not identified yet", NakReason.BUSY
+        if self.armed:
+            return "the vehicle is armed; compensation is never changed in flight", NakReason.BUSY
+        if self._push is not None:
+            return "a push is already running", NakReason.BUSY
+        lo, hi = self._temp_bounds()
+        if not hi - lo >= 1.0:
+            return (
+                f"the temperature range seen ({lo:.1f}..{hi:.1f} degC) is too narrow",
+                NakReason.OUT_OF_RANGE,
+            )
+        return "", NakReason.BUSY
+
+    def _temp_bounds(self: MavlinkLink) -> tuple[float, float]:
+        """TMIN/TMAX: the range seen over all boots (never extrapolate), unless the config fixes them."""
+        lo, hi = self._range or [np.nan, np.nan]
+        if self._hello is not None and self._range:
+            lo, hi = self.state.widen(self.serial, lo, hi)
+        lo = self.tmin_c if self.tmin_c is not None else lo
+        hi = self.tmax_c if self.tmax_c is not None else hi
+        return float(np.floor(lo * 10) / 10), float(np.ceil(hi * 10) / 10)
+
+    def _finish_push(self: MavlinkLink, out: list[Any]) -> None:
+        push, write = self._push, self._push_write
+        if push is None or write is None or not push.finished or push.outcome is None:
+            return
+        self._push, self._push_write = None, None
+        res = push.outcome
+        if res.params:
+            self._params = {**self._params, **res.params}
+        self._adj = None
+        if res.ok and self.profile is not None:
+            u = self.state.unit(self.serial)
+            u.update(
+                version=write.version,
+                coeffs=[list(r) for r in write.coeffs_dps],
+                terms_id=write.terms_id,
+                durable={k: res.params[k] for k in self.profile.durable if k in res.params},
+                target={**res.target, self.profile.enable.name: 1.0},
+            )
+            self.state.save()
+            rep = self._reported(self._params)
+            out.append(CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps)))
+            if self.reboot_required:
+                log.warning(
+                    "mavlink %s: v%d is stored; %s applies it only after a reboot",
+                    self.url,
+                    write.version,
+                    self.profile.name,
+                )
+        else:
+            log.error(
+                "mavlink %s: push of v%d failed: %s (%s)",
+                self.url,
+                write.version,
+                res.reason,
+                "previous set restored" if res.restored else "compensation left as read back",
+            )
+            out.append(
+                CoeffNak(
+                    write.version,
+                    coeff_set_crc(write.version, write.terms_id, write.coeffs_dps),
+                    res.nak or int(NakReason.BUSY),
+                )
+            )
+
+    def _reported(self: MavlinkLink, params: dict[str, float]) -> CoeffReport:
+        """The set the unit holds, in our terms: our stored version when its parameters are intact."""
+        p = self.profile
+        assert p is not None
+        q = p.applied(params)
+        u = self.state.units.get(str(getattr(self, "serial", "")), {})
+        version = 0
+        durable, target = u.get("durable"), u.get("target")
+        if durable and all(params.get(k) == v for k, v in durable.items()):
+            version = int(u.get("version", 0))
+            if target and all(params.get(k) == v for k, v in target.items()):
+                # exactly what was written, in its own term set (the unit holds its float32 rounding)
+                return CoeffReport(version, int(u.get("terms_id", TEMP_POLY3_ID)), u["coeffs"])
+        return CoeffReport(version, TEMP_POLY3_ID, q)
+
+    def reboot(self: MavlinkLink) -> None:
+        """Ask the autopilot to reboot (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN 1); refused while armed."""
+        if self.armed:
+            raise LinkError("the vehicle is armed; gyrocal never reboots an armed autopilot")
+        self._requests.append("reboot")
+
+    def _after_read(self: MavlinkLink, out: list[Any]) -> None:
+        reader, self._reader = self._reader, None
+        if reader is None or self.profile is None:
+            return
+        if reader.error:
+            self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
+            return
+        self._params = dict(reader.values)
+        self._adj = None
+        if self._boot_params is None:
+            self._boot_params = dict(reader.values)
+        why = self.profile.problem(self._params)
+        if why:
+            self._set_fault(why)
+        if self._report_wanted:
+            self._report_wanted = False
+            out.append(self._reported(self._params))
+
+    def _adjust(self: MavlinkLink, temp_c: float) -> np.ndarray:
+        """What the autopilot subtracts minus what we report it subtracts, at temp_c [deg/s].
+
+        The polynomials are worked out once per parameter change (``_adj`` is reset whenever the
+        parameters are read or written), so the per-sample cost is two cubic evaluations.
+        """
+        p = self.profile
+        if p is None or not self._params:
+            return np.zeros(3)
+        if self._adj is None:
+            boot = self._boot_params
+            eff = boot if self.reboot_required and boot is not None else self._params
+            rep = np.asarray(self._reported(self._params).coeffs_dps, dtype=np.float64)
+            diff = p.applied(eff)
+            diff[:, : rep.shape[1]] -= rep  # a quadratic or linear set: its missing powers are 0
+            self._adj = (diff, eff)
+        diff, eff = self._adj
+        temps = np.array([temp_c])
+        return (evaluate(diff, temps) + p.clamp_adjust(eff, temps))[0]
+
+    # ---- time-driven steps -----------------------------------------------------------------------

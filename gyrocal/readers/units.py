@@ -1,0 +1,92 @@
+"""Units of the quantities in a log, and their conversion to deg/s, g, degC and s.
+
+Every reader delivers gyro in deg/s, specific force in g, temperature in degC and time in s (the
+units the estimators' coefficients are expressed in, docs/logformat.md). A CSV declares what it
+holds in a ``# units: gyro=rad/s accel=m/s^2`` line or with ``--units``; foreign formats (ULog,
+DataFlash, ROS) carry SI units that their readers convert.
+
+Wrong units do not fail loudly on their own: a log with rad/s and m/s^2 read as deg/s and g gives
+coefficients 57x too small and still "converges". Hence ``looks_like_si``: at rest the specific
+force has a norm of 1 g; a median norm near 9.8 means m/s^2, and the reader warns.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from gyrocal.errors import ConfigError
+
+G0 = 9.80665
+"""Standard gravity [m/s^2] (the g of the accel columns)."""
+
+FACTORS: dict[str, dict[str, float]] = {
+    "gyro": {"deg/s": 1.0, "dps": 1.0, "rad/s": 180.0 / math.pi, "mrad/s": 0.18 / math.pi,
+             "deg/h": 1.0 / 3600.0},
+    "accel": {"g": 1.0, "m/s^2": 1.0 / G0, "m/s2": 1.0 / G0, "m/s/s": 1.0 / G0, "mg": 1e-3},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
+    "temp": {"degC": 1.0, "C": 1.0, "K": 1.0, "degF": 5.0 / 9.0},
+}
+"""Multiply a value in the named unit by this factor to get the canonical unit."""
+OFFSETS = {("temp", "K"): -273.15, ("temp", "degF"): -32.0 * 5.0 / 9.0}
+"""Added after the factor (temperature scales with an offset)."""
+COLUMNS = {"gyro": ("wx", "wy", "wz", "ref_wx", "ref_wy", "ref_wz"), "accel": ("ax", "ay", "az"),
+           "time": ("t",), "temp": ("temp",)}
+ALIASES = {"accelerometer": "accel", "acc": "accel", "rate": "gyro", "t": "time", "temperature": "temp"}
+
+
+def parse_units(text: str, where: str = "--units") -> dict[str, str]:
+    """``gyro=rad/s,accel=m/s^2`` (commas or spaces) -> {"gyro": "rad/s", "accel": "m/s^2"}.
+
+    ConfigError names the bad item and lists the known quantities and units.
+    """
+    out: dict[str, str] = {}
+    for item in text.replace(",", " ").split():
+        qty, sep, unit = item.partition("=")
+        qty = ALIASES.get(qty.strip().lower(), qty.strip().lower())
+        unit = unit.strip()
+        if not sep or qty not in FACTORS:
+            raise ConfigError(f"{where}: {item!r} is not QUANTITY=UNIT; quantities: {', '.join(FACTORS)} "
+                              "(e.g. gyro=rad/s,accel=m/s^2)")
+        if unit not in FACTORS[qty]:
+            raise ConfigError(f"{where}: unit {unit!r} unknown for {qty}; use one of "
+                              f"{', '.join(FACTORS[qty])}")
+        out[qty] = unit
+    return out
+
+
+def declared_units(text: str, where: str) -> dict[str, str]:
+    """The units of a ``# units:`` metadata line ({} when the line is absent or empty)."""
+    return parse_units(text, where) if text.strip() else {}
+
+
+def convert_columns(columns: dict[str, np.ndarray], units: Mapping[str, str]) -> None:
+    """Convert the named quantities' columns in place to deg/s, g, degC and s."""
+    for qty, unit in units.items():
+        factor, offset = FACTORS[qty][unit], OFFSETS.get((qty, unit), 0.0)
+        if factor == 1.0 and offset == 0.0:
+            continue
+        for c in COLUMNS[qty]:
+            if c in columns:
+                columns[c] = np.asarray(columns[c], dtype=np.float64) * factor + offset
+
+
+def looks_like_si(log: object) -> str | None:
+    """A warning when the accel columns [g] look like m/s^2 (median norm 4..20), else None.
+
+    Why the median norm: at rest the specific force is 1 g whatever the attitude, and a vehicle
+    spends most of a calibration log near rest; 4..20 leaves room for vibration and for a log in
+    units of g that is mostly manoeuvring (whose norm stays well below 4 g on a median).
+    """
+    cols = log.columns  # type: ignore[attr-defined]
+    if cols["ax"].size == 0:
+        return None
+    norm = float(np.median(np.sqrt(cols["ax"] ** 2 + cols["ay"] ** 2 + cols["az"] ** 2)))
+    if 4.0 <= norm <= 20.0:
+        return (f"{getattr(log, 'source', 'log')}: the accel norm's median is {norm:.2f}, which looks like "
+                "m/s^2 where g is expected (and gyro may then be rad/s, not deg/s); if so, pass "
+                "--units accel=m/s^2,gyro=rad/s or write '# units: gyro=rad/s accel=m/s^2' in the "
+                "header (docs/logformat.md)")
+    return None

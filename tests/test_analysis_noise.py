@@ -1,0 +1,104 @@
+"""The error model, its banded GLS, the time-stamp repair and the noise causes (issue 12)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gyrocal.analysis.engine import analyze
+from gyrocal.analysis.gls import StateSpaceGLS
+from gyrocal.analysis.hidden import add_background, generate
+from gyrocal.analysis.noisemodel import NoiseModel, fit_noise
+from gyrocal.analysis.timestamps import retime
+from gyrocal.logformat import LogData
+
+REGRESSION = {"temperature", "temperature_rate", "warmup", "periodic", "scale_factor"}
+
+
+def _dense_cov(m: NoiseModel, t: np.ndarray, sess: np.ndarray) -> np.ndarray:
+    same = sess[:, None] == sess[None, :]
+    c = np.eye(t.size) * m.lowfreq_white_var
+    for tau, v in m.slow:
+        c += v * np.exp(-np.abs(t[:, None] - t[None, :]) / tau) * same
+    t0 = np.array([t[sess == s][0] - 1 / m.rate_hz for s in sess])
+    c += m.walk_q * np.minimum(t[:, None] - t0[:, None], t[None, :] - t0[None, :]) * same
+    return c
+
+
+def test_banded_gls_equals_the_dense_covariance_with_gaps_sessions_and_held_out_rows() -> None:
+    m = NoiseModel(10.0, 0.01, [(0.1, 0.02), (2.0, 0.005), (20.0, 0.003)], 1e-4)
+    t = np.arange(60) / 10.0
+    t[30:] += 3.0  # a move between still runs
+    sess = (np.arange(60) >= 45).astype(float)
+    w = np.ones(60)
+    w[10:15] = 0.0
+    gls = StateSpaceGLS(m, t, sess, w)
+    c = _dense_cov(m, t, sess)
+    o = w > 0
+    x = np.random.default_rng(1).normal(size=(60, 3))
+    ref = np.zeros_like(x)
+    ref[o] = np.linalg.solve(c[np.ix_(o, o)], x[o])
+    assert np.allclose(gls.vinv(x), ref, atol=1e-9)
+    assert np.isclose(gls.logdet_v, np.linalg.slogdet(c[np.ix_(o, o)])[1])
+    pred = c[:, o] @ np.linalg.solve(c[np.ix_(o, o)], x[o, 0])
+    assert np.allclose(gls.smooth(x[:, 0])[~o], pred[~o], atol=1e-9)
+
+
+def test_allan_fit_recovers_white_colour_and_walk_where_first_differences_read_low() -> None:
+    truth = NoiseModel(100.0, 0.03**2, [(0.02, 0.04**2)], 1e-6)
+    x = truth.simulate(200_000, np.random.default_rng(3))
+    fit = fit_noise(x, 100.0)
+    assert abs(fit.sample_sd / truth.sample_sd - 1) < 0.05
+    assert abs(np.sqrt(fit.walk_q / truth.walk_q) - 1) < 0.35
+    first_diff = np.std(np.diff(x)) / np.sqrt(2)
+    assert first_diff < 0.85 * truth.sample_sd  # the coloured noise fools first differences
+
+
+def test_bursty_stamps_are_retimed_to_the_sample_clock_and_regular_ones_left_alone() -> None:
+    rng = np.random.default_rng(0)
+    n = 5000
+    clock = np.arange(n) / 99.3
+    burst = np.floor(clock / 0.05) * 0.05 + 0.05 + np.arange(n) % 5 * 0.001 + rng.uniform(0, 0.01, n)
+    cols, notes = retime({"t": np.sort(burst), "session": np.zeros(n)})
+    assert notes and abs(notes[0]["rate_hz"] - 99.3) < 0.05
+    assert np.max(np.abs(np.diff(cols["t"]) - 1 / 99.3)) < 1e-6
+    _, none = retime({"t": clock + rng.normal(0, 1e-4, n), "session": np.zeros(n)})
+    assert none == []
+
+
+def test_coloured_null_is_named_coloured_noise_and_nothing_else() -> None:
+    cols, _ = generate(20_001, causes=[])
+    r = analyze(LogData(add_background(cols, "coloured", 20_001), {}, [], "coloured")).result
+    assert [f["cause"] for f in r["findings"]] == ["coloured_noise"]
+    f = r["findings"][0]
+    assert all(v >= 0.02 for v in f["params"]["fidelity_gain_decades"].values())
+    assert r["fidelity"]["after"]["x"] < r["fidelity"]["before"]["x"]
+    arw = r["allan_terms"]["x"]["arw"]
+    assert arw["lo"] <= arw["value"] <= arw["hi"] and arw["value"] > 0
+
+
+def test_flicker_and_quantised_nulls_raise_no_regression_cause() -> None:
+    for kind, seed in (("flicker", 20_003), ("quantised", 20_004)):
+        cols, _ = generate(seed, causes=[])
+        r = analyze(LogData(add_background(cols, kind, seed), {}, [], kind)).result
+        assert not REGRESSION & {f["cause"] for f in r["findings"]}, (kind, r["findings"])
+
+
+def test_fidelity_is_per_session_with_confidence_intervals_up_to_a_tenth_of_the_session() -> None:
+    cols, _ = generate(20_005, causes=["warmup"])
+    r = analyze(LogData(cols, {}, [], "w")).result
+    fid = r["fidelity"]
+    assert len(fid["sessions"]) == 3 and fid["ensemble"] >= 4
+    s = fid["sessions"][0]
+    assert s["tau_s"][0] == 0.04
+    assert s["tau_s"][-1] <= s["samples"] / 25.0 / 10
+    assert all(lo <= m <= hi for lo, m, hi in zip(s["ci_low"]["x"], s["measured"]["x"], s["ci_high"]["x"],
+                                                 strict=True))
+
+
+def test_temperature_and_its_rate_together_are_both_named_not_a_random_walk() -> None:
+    cols, h = generate(11, causes=["temperature", "temperature_rate"])
+    r = analyze(LogData(cols, {}, [], "pair")).result
+    found = {f["cause"]: f["axes"] for f in r["findings"]}
+    assert "random_walk" not in found
+    assert found.get("temperature") == h.axes["temperature"]
+    assert found.get("temperature_rate") == h.axes["temperature_rate"]

@@ -1,0 +1,94 @@
+"""End to end: ``gyrocal run`` with ``link.kind: mavlink`` calibrates a virtual ArduPilot as it warms."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from gyrocal.mavlink.poly import evaluate  # noqa: E402
+from gyrocal.mavlink.profiles import ArduPilot  # noqa: E402
+from gyrocal.sim.autopilot import VirtualAutopilot  # noqa: E402
+from tests.sim_helpers import SimProcess, read_status, wait_for  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+
+def daemon_status(sock: Path) -> dict:
+    out = subprocess.run(
+        [sys.executable, "-m", "gyrocal.cli", "status", "--socket", str(sock), "--json"],
+        capture_output=True,
+        text=True,
+    )
+    return json.loads(out.stdout) if out.returncode == 0 and out.stdout.strip() else {}
+
+
+def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path) -> None:
+    with SimProcess(
+        "--link",
+        "mavlink",
+        "--autopilot",
+        "ardupilot",
+        "--rate",
+        "250",
+        "--warmup-tau",
+        "20",
+        "--status-json",
+        str(tmp_path / "ap.json"),
+        tmp_path=tmp_path,
+    ) as ap:
+        cfg = {
+            "link": {"kind": "mavlink", "url": ap.address, "mavlink": {"autopilot": "ardupilot"}},
+            "virtual_unit": {"enabled": False},
+            "estimator": {
+                "terms": ["1", "temp", "temp^2"],
+                "convergence": {"max_change_dps": 1.0, "max_sigma_dps": 1.0},
+            },
+            "still": {"gyro_std_dps": 0.2},
+            "state_dir": str(tmp_path / "state"),
+            "control_socket": str(tmp_path / "ctl.sock"),
+            "watchdog": False,
+        }
+        (tmp_path / "cfg.yaml").write_text(json.dumps(cfg))
+        log = (tmp_path / "run.log").open("wb")
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "gyrocal.cli", "run", "--config", str(tmp_path / "cfg.yaml")],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            acked = wait_for(
+                lambda: (
+                    (daemon_status(tmp_path / "ctl.sock").get("last_push") or {}).get("status") == "acked"
+                ),
+                120,
+                poll_s=1.0,
+            )
+            assert acked, (tmp_path / "run.log").read_text()[-3000:]
+            st = daemon_status(tmp_path / "ctl.sock")
+            assert st["link"]["kind"] == "mavlink" and st["link"]["autopilot"] == "ardupilot"
+            assert wait_for(lambda: read_status(tmp_path / "ap.json")["params"]["INS_TCAL1_ENABLE"] == 1, 5)
+        finally:
+            daemon.terminate()
+            daemon.wait(20)
+            log.close()
+        params = read_status(tmp_path / "ap.json")["params"]
+    # the offset left over the range the daemon saw, against the truth, before and after
+    truth = VirtualAutopilot("ardupilot", 250, 0)
+    truth.power_on()
+    before = dict(truth.params)
+    prof = ArduPilot(0)
+    temps = np.linspace(params["INS_TCAL1_TMIN"], params["INS_TCAL1_TMAX"], 5)
+    raw = truth.raw_offset_dps(temps)
+
+    def worst(p: dict) -> np.ndarray:
+        return np.max(np.abs(raw - evaluate(prof.applied(p), temps) - prof.clamp_adjust(p, temps)), axis=0)
+
+    assert params["INS_TCAL1_TMAX"] - params["INS_TCAL1_TMIN"] > 5.0
+    assert np.all(worst(params) < worst(before) / 5), (worst(before) * 3600, worst(params) * 3600)

@@ -1,0 +1,218 @@
+"""MavlinkLink against the virtual autopilot (``gyrocal sim --link mavlink``), over a pty and UDP."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from gyrocal.daemon.ring import RingBuffer  # noqa: E402
+from gyrocal.mavlink.link import MavlinkLink  # noqa: E402
+from gyrocal.mavlink.poly import evaluate  # noqa: E402
+from gyrocal.protocol.messages import (  # noqa: E402
+    CoeffAck,
+    CoeffNak,
+    CoeffRead,
+    CoeffReport,
+    CoeffWrite,
+    Hello,
+    NakReason,
+    coeff_set_crc,
+)
+from gyrocal.protocol.termsets import TEMP_POLY2_ID, TEMP_POLY3_ID  # noqa: E402
+from gyrocal.sim.autopilot import VirtualAutopilot  # noqa: E402
+from tests.sim_helpers import SimProcess, free_udp_port, read_status, wait_for  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+Q = np.array([[0.05, 1e-3, -2e-5, 3e-7], [-0.02, -5e-4, 1e-5, 0.0], [0.01, 2e-4, 0.0, -1e-7]])
+
+
+class Collector:
+    def __init__(self) -> None:
+        self.msgs: list[Any] = []
+        self.events: list[tuple[str, str]] = []
+        self.lock = threading.Lock()
+
+    def control(self, m: Any) -> None:
+        with self.lock:
+            self.msgs.append(m)
+
+    def event(self, name: str, detail: str) -> None:
+        self.events.append((name, detail))
+
+    def of(self, cls: type) -> list[Any]:
+        with self.lock:
+            return [m for m in self.msgs if isinstance(m, cls)]
+
+
+def open_link(url: str, tmp_path: Path, **kw: Any) -> tuple[MavlinkLink, Collector, RingBuffer]:
+    col = Collector()
+    ring = RingBuffer(1 << 16)
+    link = MavlinkLink(
+        url, ring, col.control, col.event, state_file=str(tmp_path / "mav.json"), param_timeout_s=0.3, **kw
+    )
+    link.start()
+    return link, col, ring
+
+
+def sim(kind: str, tmp_path: Path, *extra: str) -> SimProcess:
+    return SimProcess(
+        "--link",
+        "mavlink",
+        "--autopilot",
+        kind,
+        "--rate",
+        "250",
+        "--warmup-tau",
+        "30",
+        "--status-json",
+        str(tmp_path / "ap.json"),
+        "--flash",
+        str(tmp_path / "ap-flash.json"),
+        *extra,
+        tmp_path=tmp_path,
+    )
+
+
+def param_becomes(tmp_path: Path, name: str, value: float) -> bool:
+    """The sim writes its status every 0.5 s: wait until it shows the parameter at value."""
+    return wait_for(lambda: read_status(tmp_path / "ap.json").get("params", {}).get(name) == value, 5)
+
+
+def reconstruction_error_dps(ring: RingBuffer, report: CoeffReport, kind: str, boot: int) -> np.ndarray:
+    """Mean over the samples in the ring of (out + Q_reported(T)) - true raw rate(T) [deg/s], per axis."""
+    s = ring.pop()
+    ap = VirtualAutopilot(kind, 250, 0)
+    ap.boot_count = boot - 1
+    ap.power_on()
+    raw_true = ap.raw_offset_dps(s["temp"])
+    out = np.column_stack([s["wx"], s["wy"], s["wz"]])
+    rebuilt = out + evaluate(np.asarray(report.coeffs_dps), s["temp"])  # any prefix of the cubic
+    return np.mean(rebuilt - raw_true, axis=0)
+
+
+def test_px4_over_a_pty_hello_samples_push_and_reboot(tmp_path: Path) -> None:
+    with sim("px4", tmp_path) as ap:
+        link, col, ring = open_link(ap.address, tmp_path, autopilot="px4")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            hello = col.of(Hello)[0]
+            assert hello.fw_version == "1.14.0" and hello.boot_count == 1 and hello.rate_hz == 250
+            assert link.reboot_required is True  # TC_G_ENABLE was 0 at this boot
+            assert (
+                link.term_sets[TEMP_POLY3_ID] == ("1", "temp", "temp^2", "temp^3")
+                and len(link.term_sets) == 3
+            )
+            assert wait_for(lambda: ring.pushed > 500, 15)
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 10)
+            first = col.of(CoeffReport)[0]
+            assert first.version == 0 and np.all(np.asarray(first.coeffs_dps)[:, 1:] == 0)  # CAL offsets only
+            link.send(CoeffWrite(7, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 15)
+            assert col.of(CoeffAck) == [CoeffAck(7, coeff_set_crc(7, TEMP_POLY3_ID, Q))]
+            link.send(CoeffRead())
+            assert wait_for(lambda: len(col.of(CoeffReport)) == 2, 10)
+            rep = col.of(CoeffReport)[1]
+            assert rep.version == 7 and np.array_equal(np.asarray(rep.coeffs_dps), Q)
+            assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0)
+            params = read_status(tmp_path / "ap.json")["params"]
+            assert params["TC_G0_ID"] == params["CAL_GYRO0_ID"]
+            # the set waits for a reboot: samples are made consistent with the reported set meanwhile
+            ring.pop()
+            assert wait_for(lambda: ring.pushed > ring.popped + 750, 15)
+            err = reconstruction_error_dps(ring, rep, "px4", 1)
+            assert np.all(np.abs(err) < 0.02), err
+            link.reboot()
+            assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
+            assert col.of(Hello)[1].boot_count == 2 and link.reboot_required is False
+            link.send(CoeffRead())
+            assert wait_for(lambda: len(col.of(CoeffReport)) == 3, 10)
+            assert col.of(CoeffReport)[2].version == 7
+        finally:
+            link.stop()
+
+
+def test_ardupilot_over_udp_push_survives_lost_echoes(tmp_path: Path) -> None:
+    port = free_udp_port()
+    with sim("ardupilot", tmp_path, "--mavlink-udp", f"127.0.0.1:{port}", "--drop-param-values", "2") as ap:
+        assert ap.address == f"udpin:127.0.0.1:{port}"
+        link, col, ring = open_link(ap.address, tmp_path)
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert link.stats()["imu_source"] == "RAW_IMU" and link.reboot_required is False
+            assert wait_for(lambda: ring.pushed > 500, 15)
+            q2 = Q[:, :3]  # the quadratic prefix, as the daemon learns it: the link pads the cubic with 0
+            link.send(CoeffWrite(3, TEMP_POLY2_ID, q2))
+            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
+            assert col.of(CoeffAck) == [CoeffAck(3, coeff_set_crc(3, TEMP_POLY2_ID, q2))]
+            assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 1.0)
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 10)
+            rep = col.of(CoeffReport)[-1]
+            assert rep.terms_id == TEMP_POLY2_ID and np.array_equal(np.asarray(rep.coeffs_dps), q2)
+            ring.pop()
+            assert wait_for(lambda: ring.pushed > ring.popped + 1000, 15)
+            err = reconstruction_error_dps(ring, rep, "ardupilot", 1)
+            # RAW_IMU is int16 mrad/s truncated toward zero: a mean is exact only to ~1 LSB (0.057 deg/s)
+            assert np.all(np.abs(err) < 0.06), err
+        finally:
+            link.stop()
+
+
+def test_a_rejected_value_naks_and_the_old_set_stays(tmp_path: Path) -> None:
+    with sim("px4", tmp_path, "--reject-param", "TC_G0_X2_1") as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 15)
+            nak = col.of(CoeffNak)
+            assert nak and nak[0].version == 4 and nak[0].reason == NakReason.OUT_OF_RANGE
+            assert param_becomes(tmp_path, "TC_G0_X1_0", 0.0)  # restored: the old (empty) set, still off
+            assert read_status(tmp_path / "ap.json")["params"]["TC_G_ENABLE"] == 0
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 10)
+            assert col.of(CoeffReport)[0].version == 0
+        finally:
+            link.stop()
+
+
+def test_a_reboot_mid_push_naks_and_leaves_no_partial_set(tmp_path: Path) -> None:
+    with sim("ardupilot", tmp_path, "--reboot-after-sets", "6") as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
+            assert not col.of(CoeffAck) and col.of(CoeffNak)[0].reason == NakReason.BUSY
+            assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
+            assert col.of(Hello)[1].boot_count == 2
+            # ENABLE=0 was written first: the partial coefficients are not applied after the reboot
+            assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 0.0)
+        finally:
+            link.stop()
+
+
+def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    with sim("ardupilot", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
+        try:
+            assert wait_for(lambda: link.fault is not None, 15)
+            assert "ardupilot" in link.fault and "px4" in link.fault
+            assert [e for e in col.events if e[0] == "unit_error"][:1] and not col.of(Hello)
+            link.send(CoeffWrite(1, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffNak), 5)
+            assert col.of(CoeffNak)[0].reason == NakReason.UNKNOWN_TERMS
+        finally:
+            link.stop()
+        errors = [r for r in caplog.records if r.levelname == "ERROR" and "MAV_AUTOPILOT" in r.getMessage()]
+        assert len(errors) == 1

@@ -1,0 +1,161 @@
+"""The parameter push as pure logic, against a tiny in-test parameter server with injected faults."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamSet  # noqa: E402
+from gyrocal.mavlink.profiles import ArduPilot, Px4, decode_param, encode_param  # noqa: E402
+from gyrocal.protocol.messages import NakReason  # noqa: E402
+
+Q = np.array([[0.05, 1e-3, -2e-5, 3e-7], [-0.02, -5e-4, 1e-5, 0.0], [0.01, 2e-4, 0.0, -1e-7]])
+
+
+class Server:
+    """Holds parameters; answers a PARAM_SET with its echo and a read with its value, minus faults."""
+
+    def __init__(self, profile, initial: dict[str, float]) -> None:
+        self.profile = profile
+        self.p = {x.name: 0.0 for x in profile.all_params()} | initial
+        self.types = profile.types()
+        self.inbox: list[object] = []
+        self.drop_next = 0
+        self.clamp: str | None = None
+        self.sets: list[str] = []
+        self.partial_while_enabled = False
+
+    def send(self, req: object) -> None:
+        self.inbox.append(req)
+
+    def pump(self, push, limit: int | None = None) -> None:
+        """Deliver requests and answers until quiet (or ``limit`` requests)."""
+        n = 0
+        while self.inbox and (limit is None or n < limit):
+            n += 1
+            req = self.inbox.pop(0)
+            if isinstance(req, ParamSet):
+                v = decode_param(req.wire, req.ptype, self.profile.bytewise)
+                if req.name == self.clamp:
+                    v = 0.0
+                self.p[req.name] = v
+                self.sets.append(req.name)
+                self._check_atomic(push)
+                if self.drop_next:
+                    self.drop_next -= 1
+                    continue
+            elif not isinstance(req, ParamRead):
+                continue
+            name = req.name
+            push.on_value(
+                name,
+                encode_param(self.p[name], self.types[name], self.profile.bytewise),
+                self.types[name],
+                0.0,
+            )
+
+    def _check_atomic(self, push) -> None:
+        """With compensation enabled, the coefficients must be all old or all new."""
+        if self.p[self.profile.enable.name] != 1.0 or not push.target:
+            return
+        coeffs = list(push.target)
+        new = [self.p[k] == push.target[k] for k in coeffs]
+        old = [self.p[k] == push.before.get(k, 0.0) for k in coeffs]
+        if not (all(new) or all(old)):
+            self.partial_while_enabled = True
+
+
+@pytest.mark.parametrize("profile", [Px4(0), ArduPilot(0)], ids=["px4", "ardupilot"])
+def test_push_disables_writes_verifies_enables_and_reads_back(profile) -> None:
+    srv = Server(profile, {"CAL_GYRO0_ID": 42.0, profile.enable.name: 1.0, "INS_GYR1_CALTEMP": 30.0})
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0)
+    srv.pump(push)
+    assert push.finished and push.outcome.ok, push.outcome
+    assert srv.sets[0] == profile.enable.name and srv.sets[-1] == profile.enable.name
+    assert srv.p[profile.enable.name] == 1.0
+    assert all(srv.p[k] == v for k, v in push.target.items())
+    assert not srv.partial_while_enabled
+
+
+def test_a_lost_echo_is_asked_again_and_the_push_completes() -> None:
+    profile = ArduPilot(0)
+    srv = Server(profile, {"INS_GYR1_CALTEMP": 30.0})
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0, timeout_s=0.5, retries=3)
+    srv.pump(push, limit=len(profile.all_params()) + 1)  # the context read and ENABLE=0
+    srv.drop_next = 2
+    # drive: the server drops two echoes; each timeout resends the same PARAM_SET
+    t = 0.0
+    while not push.finished and t < 60:
+        srv.pump(push)
+        t += 0.6
+        push.tick(t)
+    assert push.outcome.ok
+    assert push.io.resends >= 1
+
+
+def test_a_rejected_value_restores_the_old_set_and_naks() -> None:
+    profile = Px4(0)
+    before = {"CAL_GYRO0_ID": 42.0, "TC_G_ENABLE": 1.0, "TC_G0_ID": 42.0, "TC_G0_X1_0": 1e-5}
+    srv = Server(profile, before)
+    srv.clamp = "TC_G0_X2_1"
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0)
+    srv.pump(push)
+    out = push.outcome
+    assert out is not None and not out.ok and out.nak == NakReason.OUT_OF_RANGE
+    assert "rejected" in out.reason and out.restored
+    assert srv.p["TC_G0_X1_0"] == np.float32(1e-5) and srv.p["TC_G_ENABLE"] == 1.0  # the old set, enabled
+    assert not srv.partial_while_enabled
+
+
+def test_silence_after_disable_leaves_compensation_off_never_partial() -> None:
+    profile = ArduPilot(0)
+    srv = Server(profile, {"INS_TCAL1_ENABLE": 1.0, "INS_GYR1_CALTEMP": 30.0})
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0, timeout_s=0.5, retries=2)
+    srv.pump(push, limit=len(profile.all_params()) + 3)  # context, ENABLE=0, two writes: then silence
+    srv.inbox.clear()
+    t = 0.0
+    while not push.finished and t < 60:
+        t += 0.6
+        push.tick(t)
+        srv.inbox.clear()  # the autopilot is gone: nothing arrives
+    out = push.outcome
+    assert out is not None and not out.ok and not out.restored and "no PARAM_VALUE" in out.reason
+    assert srv.p["INS_TCAL1_ENABLE"] == 0.0  # off, not a half-written set
+
+
+def test_a_reboot_mid_push_aborts_with_a_clear_reason() -> None:
+    profile = ArduPilot(0)
+    srv = Server(profile, {"INS_TCAL1_ENABLE": 1.0, "INS_GYR1_CALTEMP": 30.0})
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0)
+    srv.pump(push, limit=len(profile.all_params()) + 5)
+    push.abort("the autopilot rebooted (boot time went back)")
+    assert push.finished and not push.outcome.ok and "rebooted" in push.outcome.reason
+    assert push.outcome.nak == NakReason.BUSY
+    assert srv.p["INS_TCAL1_ENABLE"] == 0.0 and not srv.partial_while_enabled
+
+
+def test_an_unknown_parameter_fails_with_a_clear_error() -> None:
+    profile = ArduPilot(0)
+    srv = Server(profile, {})
+    del srv.p["INS_TCAL1_GYR3_Z"]  # firmware without temperature calibration
+    reader = ParamReadAll(profile, srv.send, 0.0, timeout_s=0.5, retries=2)
+    t = 0.0
+    while not reader.finished and t < 30:
+        while srv.inbox:
+            req = srv.inbox.pop(0)
+            if req.name in srv.p:
+                reader.on_value(
+                    req.name,
+                    encode_param(srv.p[req.name], srv.types[req.name], False),
+                    srv.types[req.name],
+                    t,
+                )
+        t += 0.6
+        reader.tick(t)
+    assert (
+        reader.error is not None
+        and "INS_TCAL1_GYR3_Z" in reader.error
+        and "lacks the parameter" in reader.error
+    )

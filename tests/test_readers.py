@@ -1,0 +1,301 @@
+"""Readers: every format gives the same samples in deg/s, g, degC, s, and counts what it dropped."""
+
+from __future__ import annotations
+
+import json
+import math
+from argparse import Namespace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gyrocal.cli import main
+from gyrocal.errors import ConfigError, LogFormatError
+from gyrocal.logformat import read_log, write_log
+from gyrocal.protocol.messages import Hello, Sample
+from gyrocal.protocol.serial_framing import encode_frame
+from gyrocal.readers import ReadOptions, detect_kind, options_from_args, read_any
+from gyrocal.readers.units import parse_units
+from gyrocal.sim.schedule import tumble
+from gyrocal.sim.truth import SessionStream, TruthModel
+from tests.foreign_logs import write_dataflash, write_rosbag, write_rosbag1
+
+DATA = Path(__file__).resolve().parent.parent / "data"
+COLS = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")
+D2R, G0 = math.pi / 180.0, 9.80665
+
+
+@pytest.fixture(scope="module")
+def sim_cols() -> dict[str, np.ndarray]:
+    cols = SessionStream(TruthModel(), tumble(), 100.0, seed=2, boot=0).chunk(7200)
+    return {k: np.asarray(cols[k], dtype=np.float64) for k in COLS}
+
+
+@pytest.fixture(scope="module")
+def dps_log(sim_cols: dict[str, np.ndarray], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("readers") / "dps.csv"
+    write_log(path, sim_cols)
+    return path
+
+
+def _fit(args: list[str], capsys: pytest.CaptureFixture) -> tuple[dict, str]:
+    assert main(["fit", *args, "--json"]) == 0
+    out = capsys.readouterr()
+    return json.loads(out.out), out.err
+
+
+def test_written_logs_declare_their_units(dps_log: Path) -> None:
+    head = dps_log.read_text().splitlines()[0]
+    assert head == "# units: gyro=deg/s accel=g temp=degC time=s"
+
+
+def test_si_csv_with_other_names_warns_and_the_units_flag_fixes_it(
+        sim_cols: dict[str, np.ndarray], dps_log: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture) -> None:
+    si = {"time_ms": sim_cols["t"] * 1e3, "temperature": sim_cols["temp"] + 273.15}
+    for a in "xyz":
+        si[f"gyro_{a}"] = sim_cols[f"w{a}"] * D2R
+        si[f"acc_{a}"] = sim_cols[f"a{a}"] * G0
+    path = tmp_path / "si.csv"
+    header = list(si)
+    np.savetxt(path, np.column_stack([si[h] for h in header]), delimiter=",", fmt="%.12g",
+               header=",".join(header), comments="")
+    cmap = "t=time_ms,temp=temperature," + ",".join(f"w{a}=gyro_{a},a{a}=acc_{a}" for a in "xyz")
+    ref, _ = _fit([str(dps_log)], capsys)
+    wrong, err = _fit([str(path), "--columns", cmap, "--units", "time=ms,temp=K"], capsys)
+    assert "looks like m/s^2" in err and "--units" in err and wrong["warnings"]
+    units = "gyro=rad/s,accel=m/s^2,time=ms,temp=K"
+    fixed, err = _fit([str(path), "--columns", cmap, "--units", units], capsys)
+    assert "warning" not in err and not fixed["warnings"]
+    for a in "xyz":
+        got = np.array(fixed["coefficients"][a], dtype=float)
+        np.testing.assert_allclose(got, np.array(ref["coefficients"][a], dtype=float), rtol=1e-5, atol=1e-9)
+    # the '# units:' header line does the same as the flag
+    body = path.read_text()
+    path.write_text("# units: gyro=rad/s accel=m/s^2 time=ms temp=K\n" + body)
+    log = read_log(path, rename=dict(p.split("=") for p in cmap.split(",")))
+    np.testing.assert_allclose(log["wx"], sim_cols["wx"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(log["az"], sim_cols["az"], rtol=1e-9, atol=1e-12)
+    assert not log.warnings
+
+
+def test_bad_column_map_and_units_name_the_fix(dps_log: Path) -> None:
+    with pytest.raises(LogFormatError, match=r"--columns wx=gyro_x: no such column"):
+        read_any(dps_log, options=ReadOptions(columns={"wx": "gyro_x"}))
+    with pytest.raises(ConfigError, match=r"unit 'furlong/s' unknown for gyro"):
+        parse_units("gyro=furlong/s")
+    with pytest.raises(ConfigError, match=r"--columns: 'wx' is not OURS=THEIRS"):
+        options_from_args(Namespace(columns="wx", units=None))
+    with pytest.raises(ConfigError, match="unknown log extension"):
+        detect_kind("x.xyz")
+
+
+def test_missing_columns_come_with_a_column_map_to_try(tmp_path: Path) -> None:
+    path = tmp_path / "other.csv"
+    path.write_text("timestamp,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z\n0,0,0,0,0,0,1\n")
+    hint = "t=timestamp,wx=gyro_x,wy=gyro_y,wz=gyro_z,ax=acc_x,ay=acc_y,az=acc_z"
+    with pytest.raises(LogFormatError, match=f"perhaps --columns {hint}"):
+        read_any(path)
+    log = read_any(path, options=ReadOptions(columns=dict(p.split("=") for p in hint.split(","))))
+    assert len(log) == 1 and log["az"][0] == 1.0
+
+
+def test_text_columns_of_a_foreign_csv_are_left_out_with_a_warning(tmp_path: Path) -> None:
+    path = tmp_path / "foreign.csv"
+    path.write_text("t,frame,wx,wy,wz,ax,ay,az,note\n" + "".join(
+        f"{i / 100},imu_link,0.1,0.2,0.3,0,0,1,{'ok' if i % 2 else 'still'}\n" for i in range(30)))
+    log = read_any(path)
+    assert len(log) == 30 and not log.has("frame") and not log.has("note")
+    assert any("column 'frame' is not numeric" in w for w in log.warnings)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,wx,wy,wz,ax,ay,az\n0,0.1,0.2,0.3,0,0,1\n0.01,0.1,x,0.3,0,0,1\n")
+    with pytest.raises(LogFormatError, match=r"bad.csv:3: column 'wy' holds 'x'"):
+        read_any(bad)
+
+
+def test_fit_counts_the_nan_rows_it_dropped(sim_cols: dict[str, np.ndarray], tmp_path: Path,
+                                            capsys: pytest.CaptureFixture) -> None:
+    cols = {k: v.copy() for k, v in sim_cols.items()}
+    cols["wx"][100:150] = np.nan
+    path = tmp_path / "nan.csv"
+    write_log(path, cols)
+    res, _ = _fit([str(path)], capsys)
+    assert res["skipped"]["nonfinite"] == 50 and res["source_rows"] == 7200 and res["rows"] == 7150
+    assert res["skipped"]["not_still"] == 7150 - res["samples"]
+    assert main(["fit", str(path)]) == 0
+    assert "50 nonfinite" in capsys.readouterr().out
+
+
+def test_empty_and_all_nan_logs_name_the_real_cause(sim_cols: dict[str, np.ndarray], tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture) -> None:
+    empty = tmp_path / "empty.csv"
+    empty.write_text("t,wx,wy,wz,ax,ay,az\n")
+    nan = tmp_path / "nan.csv"
+    nan.write_text("t,wx,wy,wz,ax,ay,az\n" + "0,nan,0,0,0,0,1\n" * 20)
+    for flag in ([], ["--all-samples"]):
+        assert main(["fit", str(empty), *flag]) == 2
+        err = capsys.readouterr().err
+        assert "no data rows" in err and "still" not in err
+        assert main(["fit", str(nan), *flag]) == 2
+        err = capsys.readouterr().err
+        assert "all 20 data rows were dropped (20 nonfinite)" in err and "still" not in err
+
+
+def test_nlms_uncertainty_includes_its_distance_from_least_squares(dps_log: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    batch, _ = _fit([str(dps_log), "--method", "batch"], capsys)
+    nlms, _ = _fit([str(dps_log), "--method", "nlms"], capsys)
+    assert batch["uncertainty_kind"] == "ls_1sigma" and nlms["uncertainty_kind"] == "ls_1sigma_plus_offset"
+    for a in "xyz":
+        for j, (c, cb, s, sb) in enumerate(zip(nlms["coefficients"][a], batch["coefficients"][a],
+                                               nlms["uncertainty"][a], batch["uncertainty"][a], strict=True)):
+            if s is None:
+                continue
+            # the reported sigma covers the gap to the least-squares solution, and is never below LS's
+            assert abs(c - cb) <= s * (1 + 1e-9) and s >= sb * (1 - 1e-9), (a, j)
+            off = nlms["offset_from_ls_sigma"][a][j]
+            assert off == pytest.approx(abs(c - cb) / sb, rel=1e-6, abs=1e-9)
+    assert main(["fit", str(dps_log), "--method", "nlms"]) == 0
+    assert "LS-sigma from the least-squares solution" in capsys.readouterr().out
+
+
+def test_python_can_recordings_decode_with_our_dbc(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    import can
+
+    blf = read_any(DATA / "sim_can" / "virtual_unit.blf")
+    assert len(blf) == 4000 and blf.metadata["unit_serial"] == "4242"
+    assert blf.metadata["applied_version"] == "3"
+    assert not blf.dropped and np.all(np.diff(blf["t"]) > 0) and set(blf["session"]) == {0.0}
+    assert np.allclose(np.median(np.linalg.norm(blf.accel_g, axis=1)), 1.0, atol=0.02)
+    asc = read_any(DATA / "sim_can" / "virtual_unit_short.asc")
+    assert len(asc) == 500 and asc.metadata["host_frames"] == "2"
+    # the same frames in candump's .log format, written by python-can, read the same
+    candump = tmp_path / "short.log"
+    with can.Logger(str(candump)) as out:
+        for frame in can.LogReader(str(DATA / "sim_can" / "virtual_unit_short.asc")):
+            out(frame)
+    again = read_any(candump)
+    for c in ("t", "wx", "az", "temp"):
+        np.testing.assert_array_equal(again[c], asc[c])
+    res, _ = _fit([str(DATA / "sim_can" / "virtual_unit.blf"), "--terms", "1", "--all-samples"], capsys)
+    assert res["samples"] == 4000 and res["skipped"]["nonfinite"] == 0
+    # CAN carries accel in 1 mg steps: still periods must still be found (27 s of 40 s are dwell)
+    res, _ = _fit([str(DATA / "sim_can" / "virtual_unit.blf")], capsys)
+    assert res["samples"] > 1500 and res["identifiable"]["rank"] == 9
+
+
+def _samples(n: int, seq0: int = 0) -> list[Sample]:
+    return [Sample(seq0 + i, i / 100, (0.01, 0.02, 0.03), (0.0, 0.0, 1.0), 30.0) for i in range(n)]
+
+
+def test_serial_capture_counts_garbage_and_crc_failures_and_splits_sessions(tmp_path: Path) -> None:
+    cap = tmp_path / "run.cap"
+    bad = bytearray(encode_frame(_samples(1, 50)[0]))
+    bad[-1] ^= 0xFF  # corrupt the CRC
+    data = (b"\x00\x13garbage" + encode_frame(Hello(77, "1.2.3", 5, 100))
+            + b"".join(encode_frame(s) for s in _samples(50)) + bytes(bad)
+            + encode_frame(Hello(77, "1.2.3", 6, 100)) + b"".join(encode_frame(s) for s in _samples(30))
+            + encode_frame(_samples(1)[0])[:7])  # cut by the end of the capture
+    cap.write_bytes(data)
+    log = read_any(cap)
+    assert len(log) == 80 and list(np.bincount(log["session"].astype(int))) == [50, 30]
+    assert log.metadata["unit_serial"] == "77" and log.dropped["crc_errors"] == 1
+    assert log.dropped["garbage_bytes"] >= 9 and log.dropped["truncated_bytes"] == 7
+    (tmp_path / "x.bin").write_bytes(data)  # a .bin without DataFlash's header is a serial capture
+    assert detect_kind(tmp_path / "x.bin") == "serial"
+
+
+def test_px4_ulog_reads_sensor_gyro_or_falls_back_to_sensor_combined() -> None:
+    pytest.importorskip("pyulog")
+    path = DATA / "px4_ulog" / "sample_log_small.ulg"
+    log = read_any(path)
+    assert len(log) == 1298 and "sensor_combined" in log.warnings[0] and "AFTER" in log.warnings[0]
+    assert np.median(np.linalg.norm(log.accel_g, axis=1)) == pytest.approx(1.0, abs=0.05)
+    assert not log.has("temp")
+    raw = read_any(path, options=ReadOptions(topic="sensor_gyro", instance=1))
+    assert len(raw) + raw.dropped.get("no_accel", 0) == 6 and raw.has("temp")
+    assert 20 < float(np.median(raw["temp"])) < 40 and raw.metadata["frame"] == "FRD board"
+    with pytest.raises(LogFormatError, match=r"instances logged: \[0, 1, 2\]"):
+        read_any(path, options=ReadOptions(topic="sensor_gyro", instance=5))
+
+
+def test_ardupilot_dataflash_imu_instances(sim_cols: dict[str, np.ndarray], tmp_path: Path) -> None:
+    pytest.importorskip("pymavlink")
+    n = 400
+    g = np.column_stack([sim_cols[f"w{a}"][:n] for a in "xyz"]) * D2R
+    acc = np.column_stack([sim_cols[f"a{a}"][:n] for a in "xyz"]) * G0
+    path = tmp_path / "flight.bin"
+    write_dataflash(path, sim_cols["t"][:n], g, acc, sim_cols["temp"][:n], instances=2)
+    assert detect_kind(path) == "dataflash"
+    log = read_any(path)
+    assert len(log) == n and log.metadata["other_instance_records"] == str(n)
+    np.testing.assert_allclose(log["wx"], sim_cols["wx"][:n], atol=1e-4)  # float32 in the file
+    np.testing.assert_allclose(log["az"], sim_cols["az"][:n], atol=1e-6)
+    np.testing.assert_allclose(log["temp"], sim_cols["temp"][:n], atol=1e-4)
+    second = read_any(path, options=ReadOptions(instance=1))
+    np.testing.assert_allclose(second["wx"] - log["wx"], 0.01 / D2R, atol=1e-4)
+    with pytest.raises(LogFormatError, match=r"instances seen: \[0, 1\]"):
+        read_any(path, options=ReadOptions(instance=2))
+
+
+def test_rosbag2_imu_with_temperature(sim_cols: dict[str, np.ndarray], tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    n = 300
+    g = np.column_stack([sim_cols[f"w{a}"][:n] for a in "xyz"]) * D2R
+    acc = np.column_stack([sim_cols[f"a{a}"][:n] for a in "xyz"]) * G0
+    bag = tmp_path / "bag"
+    write_rosbag(bag, 100.0 + sim_cols["t"][:n], g, acc, sim_cols["temp"][:n])
+    log = read_any(bag)
+    assert len(log) == n and log.metadata["frame"] == "imu_link"
+    np.testing.assert_allclose(log["wy"], sim_cols["wy"][:n], atol=1e-9)
+    np.testing.assert_allclose(log["ay"], sim_cols["ay"][:n], atol=1e-12)
+    assert np.all(np.abs(log["temp"] - sim_cols["temp"][:n]) < 0.5)
+
+
+def test_mcap_and_ros1_bags(sim_cols: dict[str, np.ndarray], tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    n = 200
+    g = np.column_stack([sim_cols[f"w{a}"][:n] for a in "xyz"]) * D2R
+    acc = np.column_stack([sim_cols[f"a{a}"][:n] for a in "xyz"]) * G0
+    write_rosbag(tmp_path / "m", sim_cols["t"][:n] + 1.0, g, acc, mcap=True)
+    lone = tmp_path / "lone.mcap"  # an .mcap file on its own, without the bag's metadata.yaml
+    lone.write_bytes(next((tmp_path / "m").glob("*.mcap")).read_bytes())
+    write_rosbag1(tmp_path / "r1.bag", sim_cols["t"][:n] + 1.0, g, acc)
+    for path in (tmp_path / "m", lone, tmp_path / "r1.bag"):
+        log = read_any(path)
+        assert len(log) == n, path
+        np.testing.assert_allclose(log["wz"], sim_cols["wz"][:n], atol=1e-9)
+        np.testing.assert_allclose(log["ax"], sim_cols["ax"][:n], atol=1e-12)
+
+
+def test_convert_a_foreign_log_to_csv_and_back(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "blf.csv"
+    assert main(["convert", str(DATA / "sim_can" / "virtual_unit.blf"), str(out)]) == 0
+    back = read_log(out)
+    direct = read_any(DATA / "sim_can" / "virtual_unit.blf")
+    assert back.metadata["unit_serial"] == "4242" and back.metadata["units"].startswith("gyro=deg/s")
+    np.testing.assert_allclose(back["wz"], direct["wz"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["x.bin", "x.ulg", "x.blf", "x.asc", "x.log", "x.mcap", "x.db3", "x.bag",
+                                  "x.cap", "df.bin", "cut.blf", "cut.ulg"])
+def test_damaged_or_foreign_files_end_in_one_line_never_a_traceback(name: str, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    rng = np.random.default_rng(sum(map(ord, name)))
+    junk = rng.integers(0, 256, 6000, dtype=np.uint8).tobytes()
+    path = tmp_path / name
+    if name == "df.bin":
+        junk = b"\xa3\x95" + junk  # DataFlash's header, then garbage
+    elif name.startswith("cut."):  # a real recording cut in the middle
+        src = DATA / ("sim_can/virtual_unit.blf" if name.endswith(".blf")
+                      else "px4_ulog/sample_log_small.ulg")
+        junk = src.read_bytes()[: src.stat().st_size // 2]
+    elif name in ("x.asc", "x.log"):
+        junk = b"".join(b"line %d of something else\n" % i for i in range(50))
+    path.write_bytes(junk)
+    rc = main(["fit", str(path), "--terms", "1", "--all-samples"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    if rc != 0:
+        assert rc == 2 and err.startswith("gyrocal: error: ") and str(path.name) in err
