@@ -25,6 +25,10 @@ from tests.sim_helpers import MULTICAST_GROUP, free_udp_port, multicast_works, w
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
 WAIT_S = 75.0  # generous bound on the first push; never asserted as a time
+FIRST_PUSH_SHORT = pytest.mark.xfail(
+    strict=False, reason="daemon (h9 push gate, min_cut 20): the first push at 400 Hz cut this unit's true "
+    "drift only 7.0x/10.8x/7.6x (pty) and 37.9x/21.7x/10.3x, bias push 33x/18x/8.0x (CAN) - under the 10x "
+    "issue 9 promises; see the hind report")
 
 
 class Proc:
@@ -147,6 +151,7 @@ def _check_power_cycle(unit: IndepUnit, daemon: Daemon) -> None:
 
 
 @pytest.mark.slow
+@FIRST_PUSH_SHORT
 def test_fibre_grade_pty_400hz_push_and_power_cycle(tmp_path: Path) -> None:
     unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
     daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
@@ -186,8 +191,6 @@ def test_held_temperature_rate_set_is_reconstructed(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="daemon (issue 9 item 1): the absolute still threshold "
-                   "(still.gyro_std_dps 0.05) never sees a 0.1 deg/s-per-sample MEMS unit as still")
 def test_mems_grade_pty_1khz_push(tmp_path: Path) -> None:
     unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "1000", "--grade", "mems", "--noise", "0.1")
     daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
@@ -199,11 +202,7 @@ def test_mems_grade_pty_1khz_push(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("node", [
-    0,
-    pytest.param(3, marks=pytest.mark.xfail(strict=False, reason="daemon (issue 9 item 6): no "
-                                            "link.can_node_id yet, only node 0 is heard")),
-])
+@pytest.mark.parametrize("node", [pytest.param(0, marks=FIRST_PUSH_SHORT), 3])
 def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
     port = free_udp_port()
     if not multicast_works(port):
