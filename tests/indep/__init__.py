@@ -1,0 +1,1 @@
+"""An independent strapdown-unit emulator, written from docs/protocol.md alone (no gyrocal imports)."""

@@ -1,0 +1,255 @@
+"""The real daemon against an independent unit written from docs/protocol.md alone (tests/indep/).
+
+Each case starts ``python -m tests.indep.unit`` (its own framing, CAN packing, drift truth, poses
+and temperature) and ``python -m gyrocal.cli run`` as separate processes, waits for the push, and
+checks what the issues promise with the unit's truth: the push is acked, the drift left over the
+unit's poses is >= 10x smaller on every axis, the store and the unit hold the same set, and a
+power cycle gives one new session and a new bias push.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.sim_helpers import MULTICAST_GROUP, free_udp_port, multicast_works, wait_for
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
+WAIT_S = 75.0  # generous bound on the first push; never asserted as a time
+FIRST_PUSH_SHORT = pytest.mark.xfail(
+    strict=False, reason="daemon (h9 push gate, min_cut 20): the first push at 400 Hz cut this unit's true "
+    "drift only 7.0x/10.8x/7.6x (pty) and 37.9x/21.7x/10.3x, bias push 33x/18x/8.0x (CAN) - under the 10x "
+    "issue 9 promises; see the hind report")
+
+
+class Proc:
+    """A child process whose stderr goes to a file under tmp_path."""
+
+    def __init__(self, cmd: list[str], tmp_path: Path, name: str) -> None:
+        self.stderr_path = tmp_path / f"{name}.stderr"
+        self._err = self.stderr_path.open("wb")
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._err, env=ENV, cwd=ROOT)
+
+    def first_line(self, timeout_s: float = 20.0) -> str:
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
+        line = self.proc.stdout.readline().decode().strip() if ready else ""
+        if not line:
+            raise RuntimeError(f"no first line; stderr: {self.stderr_path.read_text()}")
+        return line
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._err.close()
+
+
+class IndepUnit(Proc):
+    """The independent unit; ``truth()`` reads its status JSON."""
+
+    def __init__(self, tmp_path: Path, *args: str) -> None:
+        self.status_path = tmp_path / "unit-status.json"
+        super().__init__([sys.executable, "-m", "tests.indep.unit", "--flash", str(tmp_path / "flash.json"),
+                          "--status", str(self.status_path), *args], tmp_path, "unit")
+        self.address = self.first_line()
+
+    def truth(self) -> dict:
+        try:
+            return json.loads(self.status_path.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+
+    def power_cycle(self) -> None:
+        self.proc.send_signal(signal.SIGUSR1)
+
+
+class Daemon(Proc):
+    """``gyrocal run`` with a config file written per case; ``status()`` asks it over its socket."""
+
+    def __init__(self, tmp_path: Path, link: dict) -> None:
+        self.socket = tmp_path / "ctl.sock"
+        config = {"link": link, "state_dir": str(tmp_path / "state"), "control_socket": str(self.socket),
+                  "watchdog": False}
+        cfg = tmp_path / "gyrocal.yaml"
+        cfg.write_text(json.dumps(config))  # JSON is YAML
+        super().__init__([sys.executable, "-m", "gyrocal.cli", "run", "--config", str(cfg)], tmp_path,
+                         "daemon")
+
+    def status(self) -> dict:
+        out = subprocess.run([sys.executable, "-m", "gyrocal.cli", "status", "--json", "--socket",
+                              str(self.socket)], capture_output=True, env=ENV, cwd=ROOT, timeout=20)
+        if out.returncode != 0:
+            return {}
+        try:
+            return json.loads(out.stdout)
+        except json.JSONDecodeError:
+            return {}
+
+    def log(self) -> str:
+        return self.stderr_path.read_text(errors="replace")
+
+
+def _acked(unit: IndepUnit, daemon: Daemon, boot: int) -> bool:
+    acks = [a for a in unit.truth().get("acks", []) if a["boot"] == boot]
+    if not acks:
+        return False
+    st = daemon.status()
+    return (st.get("last_push", {}).get("status") == "acked"
+            and st.get("applied", {}).get("version") == acks[-1]["version"])
+
+
+def _check_push(unit: IndepUnit, daemon: Daemon, boot: int) -> dict:
+    """The push is acked by the unit, cuts its true drift >= 10x per axis, and store == unit."""
+    ok = wait_for(lambda: daemon.proc.poll() is not None or _acked(unit, daemon, boot), timeout_s=WAIT_S,
+                  poll_s=1.0)
+    assert daemon.proc.poll() is None, f"the daemon exited: {daemon.log()[-2000:]}"
+    truth, st = unit.truth(), daemon.status()
+    assert ok, (f"no acked push in boot {boot}: daemon {st.get('state')} {st.get('reason')}; unit acks "
+                f"{truth.get('acks')} naks {truth.get('naks')}\n{daemon.log()[-3000:]}")
+    assert truth["boot"] == boot
+    ack = [a for a in truth["acks"] if a["boot"] == boot][-1]
+    for axis in "xyz":
+        before, after = ack["rms_before"][axis], ack["rms_after"][axis]
+        assert after * 10 <= before, f"axis {axis}: drift {before:.3g} -> {after:.3g} deg/s (< 10x)"
+    assert st["applied"] == {"version": truth["applied"]["version"], "terms_id": truth["applied"]["terms_id"]}
+    assert st["last_push"]["acked_crc"] == truth["applied"]["crc"]
+    assert st["last_push"]["readback_ok"] is True
+    assert st["unit"]["serial"] == truth["serial"] and st["unit"]["boot_count"] == boot
+    assert truth["naks"] == []
+    return st
+
+
+def _check_power_cycle(unit: IndepUnit, daemon: Daemon) -> None:
+    """One new session per power cycle, and a new push for the new turn-on bias."""
+    sessions = daemon.status()["sessions"]
+    unit.power_cycle()
+    assert wait_for(lambda: unit.truth().get("boot") == 2, timeout_s=20, poll_s=0.2)
+    assert wait_for(lambda: daemon.status().get("unit", {}).get("boot_count") == 2, timeout_s=20, poll_s=0.5)
+    time.sleep(2.0)  # let a second, spurious session (if any) show up before counting
+    st = daemon.status()
+    if st["sessions"] != sessions + 1:
+        pytest.xfail(f"daemon bug (issue 9 item 5): one power cycle gave {st['sessions'] - sessions} new "
+                     "sessions ('sample sequence went back' is logged before the HELLO is handled)")
+    pushed = wait_for(lambda: _acked(unit, daemon, 2), timeout_s=WAIT_S, poll_s=1.0)
+    st = daemon.status()
+    if not pushed:
+        pytest.xfail(f"daemon: no push for the new bias after the power cycle: {st.get('reason')}")
+    _check_push(unit, daemon, 2)
+
+
+@pytest.mark.slow
+@FIRST_PUSH_SHORT
+def test_fibre_grade_pty_400hz_push_and_power_cycle(tmp_path: Path) -> None:
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 1)
+        _check_power_cycle(unit, daemon)
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="host and unit dtemp disagree (doc sec. 6 rule): with a held 0x549E "
+                   "set whose only temperature coefficient is dtemp, the daemon converged in 116 s "
+                   "(46 s with temp/temp^2 instead) and its push cut the drift only 8.1x/8.1x/12.4x "
+                   "(158x/46x/89x with temp/temp^2); see the hind report")
+def test_held_temperature_rate_set_is_reconstructed(tmp_path: Path) -> None:
+    """The unit comes with a factory set on terms 0x549E (dtemp in it); the daemon must add it back
+    exactly (``out + C_applied @ terms``, doc sec. 6) before it learns, or the first push is poor."""
+    import numpy as np
+
+    from tests.indep.wire import CoeffSet
+
+    coeffs = np.zeros((3, 14))
+    coeffs[:, 0] = 0.01
+    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
+    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
+    factory = CoeffSet(7, 0x549E, coeffs)
+    (tmp_path / "flash.json").write_text(json.dumps({"boot": 4, "set": factory.encode().hex()}))
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 5)
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+@pytest.mark.slow
+def test_mems_grade_pty_1khz_push(tmp_path: Path) -> None:
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "1000", "--grade", "mems", "--noise", "0.1")
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 1)
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("node", [pytest.param(0, marks=FIRST_PUSH_SHORT), 3])
+def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
+    port = free_udp_port()
+    if not multicast_works(port):
+        pytest.skip("udp_multicast does not loop back on this host")
+    unit = IndepUnit(tmp_path, "--link", "can", "--node", str(node), "--rate", "400", "--grade", "fibre",
+                     "--can-channel", MULTICAST_GROUP, "--can-port", str(port))
+    link = {"kind": "can", "can": {"interface": "udp_multicast", "channel": MULTICAST_GROUP, "port": port}}
+    if node:
+        link["can_node_id"] = node
+    daemon = Daemon(tmp_path, link)
+    try:
+        sessions = _check_push(unit, daemon, 1)["sessions"]
+        unit.power_cycle()  # one new session on CAN too (the HELLO pair, then an anchor first)
+        assert wait_for(lambda: daemon.status().get("unit", {}).get("boot_count") == 2, timeout_s=20,
+                        poll_s=0.5)
+        time.sleep(2.0)
+        st = daemon.status()
+        assert st["sessions"] == sessions + 1
+        assert st["link"]["errors"]["incomplete"] == 0 and st["link"]["errors"]["lost_samples"] == 0
+    finally:
+        daemon.stop()
+        unit.stop()
+
+
+def test_indep_wire_reproduces_the_docs_worked_examples() -> None:
+    """The emulator's own encoders give the document's example bytes (so a failure above is not ours)."""
+    import numpy as np
+
+    from tests.indep import wire
+    from tests.indep.links import pack_bits
+
+    assert wire.crc32(b"123456789") == 0xCBF43926
+    assert {hex(k) for k in wire.TERM_TABLE} == {"0xf2ff", "0x549e"}
+    sample = wire.frame(wire.SAMPLE, wire.sample_payload(7, 1_500_000, np.array([0.001, -2.5, 100.0]),
+                                                         np.array([0.0, 0.5, -1.0]), 23.45))
+    assert sample.hex() == ("a55a0220000700000060e31600000000"
+                            "00e803000060dad9ff00e1f50500008813f0d82909d2be8c27")
+    hello = wire.frame(wire.HELLO, wire.hello_payload(0x01020304, (1, 2, 3), 17, 2000))
+    assert hello.hex() == "a55a010d000403020101020311000000d007704a340d"
+    ack = wire.frame(wire.COEFF_ACK, bytes.fromhex("050000000df0feca"))
+    assert ack.hex() == "a55a110800050000000df0fecae7a8e8e9"
+    assert wire.frame(wire.COEFF_READ, b"").hex() == "a55a1300003bc421e1"
+    assert wire.CoeffSet.empty().crc == 0x9D6CDF7E
+    t = 1_500_000
+    assert pack_bits([(0, 16, 7), (16, 48, t)]).hex() == "070060e316000000"
+    assert pack_bits([(0, 16, 7), (16, 32, 1000), (48, 16, 2345)]).hex() == "0700e80300002909"
+    assert pack_bits([(0, 4, 7), (4, 4, t >> 16), (8, 32, -2_500_000), (40, 12, 0),
+                      (52, 12, 500)]).hex() == "6760dad9ff00401f"
+    sample_c = pack_bits([(0, 4, 7), (4, 32, 100_000_000), (36, 12, -1000), (48, 16, t)])
+    assert sample_c.hex() == "07105e5f80c160e3"
