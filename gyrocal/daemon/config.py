@@ -32,7 +32,8 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "can": ((dict,), {}, "write python-can Bus arguments, e.g. {interface: socketcan, channel: can0}; "
                 "interface/channel left out come from python-can's config (CAN_INTERFACE, ~/.canrc)"),
         "mavlink": ((dict,), {}, "write MAVLink link options, e.g. {autopilot: px4} (docs/mavlink.md)"),
-        "reconnect_max_s": ((int, float), 5.0, "write the longest reconnect back-off in seconds"),
+        "reconnect_max_s": ((int, float), 1.0,
+                            "write the longest reconnect back-off in seconds (the engine caps it at 1 s)"),
         "can_node_id": ((int,), 0, "write the unit's CAN node id, an integer 0 to 15"),
     },
     "virtual_unit": {
