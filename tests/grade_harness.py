@@ -11,11 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from gyrocal.daemon.config import DaemonConfig, load_config
 from gyrocal.daemon.learner import make_learner
-from gyrocal.daemon.ring import SAMPLE_DTYPE
 from gyrocal.daemon.session import Session
 from gyrocal.daemon.stillness import StillDetector
 from gyrocal.daemon.store import CalibrationStore
@@ -23,15 +20,7 @@ from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.schedule import Schedule, tumble
 from gyrocal.sim.truth import TruthModel
 from gyrocal.sim.unit import VirtualUnit
-
-
-def to_ring(chunk: Any) -> np.ndarray:
-    c = chunk.columns
-    out = np.zeros(chunk.seq.size, dtype=SAMPLE_DTYPE)
-    out["seq"] = chunk.seq
-    for k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp"):
-        out[k] = c[k]
-    return out
+from tests.daemon_harness import to_ring
 
 
 @dataclass
