@@ -120,6 +120,12 @@ class Rig:
         err = (self.tmp / "sim.stderr").open("a")
         self.sim = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
 
+    def start_healthy(self) -> bool:
+        """Start the daemon and a fault-free unit; True once the daemon is healthy (within 30 s)."""
+        self.start_daemon()
+        self.start_sim()
+        return self.wait(self.healthy, 30)
+
     def unit_back(self, timeout_s: float = 20.0) -> float:
         """Wait until the restarted unit is there again (its pty exists, or it wrote its status on
         CAN); returns that moment (monotonic s): recovery is timed from it, not from process spawn."""
@@ -303,9 +309,7 @@ def sc_store_unwritable(rig: Rig) -> Result:
     res = Result("store_unwritable", rig.link,
                  "the unit's store directory becomes unwritable (ENOTDIR) before the first push; "
                  "fixed 2 s after the daemon said so")
-    rig.start_daemon()
-    rig.start_sim()
-    if not rig.wait(rig.healthy, 30):
+    if not rig.start_healthy():
         res.notes.append("never healthy")
         return _finish(rig, res)
     udir = rig.state / "units" / str(SERIAL)
@@ -333,9 +337,7 @@ def sc_store_unwritable(rig: Rig) -> Result:
 def sc_refused_pushes(rig: Rig) -> Result:
     res = Result("refused_pushes", rig.link,
                  "push a 22-term set, a NaN set, an unknown term set, then a good file set, over the socket")
-    rig.start_daemon()
-    rig.start_sim()
-    if not rig.wait(rig.healthy, 30):
+    if not rig.start_healthy():
         return _finish(rig, res)
     names = ["1", "gx", "gy", "gz", "gx^2", "gy^2", "gz^2", "gx*gy", "gy*gz", "gx*gz"]
     bad = [
@@ -429,9 +431,7 @@ def sc_seq_outliers(rig: Rig) -> Result:
 
 def sc_silence(rig: Rig) -> Result:
     res = Result("unit_silent", rig.link, "the unit stops sending for 5 s (SIGUSR2 twice), link still up")
-    rig.start_daemon()
-    rig.start_sim()
-    if not rig.wait(rig.healthy, 30):
+    if not rig.start_healthy():
         return _finish(rig, res)
     rig.signal_sim(signal.SIGUSR2)
     t_silent = time.monotonic()
@@ -451,9 +451,7 @@ def sc_silence(rig: Rig) -> Result:
 
 def sc_replug(rig: Rig) -> Result:
     res = Result("pty_replug", rig.link, "the cable is replugged (SIGHUP: a new pty behind the same path)")
-    rig.start_daemon()
-    rig.start_sim()
-    if not rig.wait(rig.healthy, 30):
+    if not rig.start_healthy():
         return _finish(rig, res)
     before = rig.status().get("sessions")
     t0 = time.monotonic()
@@ -469,9 +467,7 @@ def sc_replug(rig: Rig) -> Result:
 
 def sc_power_cycles(rig: Rig) -> Result:
     res = Result("power_cycles", rig.link, "3 power cycles (SIGUSR1), 3 s apart")
-    rig.start_daemon()
-    rig.start_sim()
-    if not rig.wait(rig.healthy, 30):
+    if not rig.start_healthy():
         return _finish(rig, res)
     times = []
     for _ in range(3):
@@ -508,9 +504,7 @@ def sc_no_coeff_read(rig: Rig) -> Result:
 
 def sc_flapping_cable(rig: Rig) -> Result:
     res = Result("flapping_cable", rig.link, "the cable is replugged 5 times, 1 s apart (a loose connector)")
-    rig.start_daemon()
-    rig.start_sim()
-    if not rig.wait(rig.healthy, 30):
+    if not rig.start_healthy():
         return _finish(rig, res)
     before = rig.status().get("sessions")
     for _ in range(5):
