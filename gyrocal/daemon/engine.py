@@ -258,7 +258,7 @@ class Engine(CommandsMixin):
                 if now - item[3] < 0.5:
                     limit = max(0, min(limit, item[2] - self.ring.position))
                 break
-        block = self.ring.pop(limit) if limit else self.ring.pop(0)
+        block = self.ring.pop(limit)
         if block.size:
             self._seq_hist.append((self.ring.position - block.size, block["seq"].copy()))
             self._contain("samples", self._on_samples, block, now)
