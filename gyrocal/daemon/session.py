@@ -277,7 +277,7 @@ class Session(RecoveryMixin):
         """The push gate on the predicted drift left (deg/h in the reason)."""
         p = self.predict()
         # the bias stage is judged on what it learns (the bias); the stored terms' error is reported
-        left, removes = p.get("gate", p["left_poses"]), p["removes"]
+        left, removes = p.get("gate", np.fmax(p["left_poses"], p["left_sphere"])), p["removes"]
         target = self.cfg.push["target_drift_dph"] / DPH
         cut = self.BIAS_MIN_CUT if p.get("stage") == "bias" else self.cfg.push["min_cut"]
         ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
