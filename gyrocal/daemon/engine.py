@@ -369,8 +369,9 @@ class Engine(CommandsMixin):
             log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
 
     def _on_samples(self, block: np.ndarray, now: float) -> None:
-        fields = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp")
-        finite = np.all(np.column_stack([np.isfinite(block[f]) for f in fields]), axis=1)
+        finite = np.isfinite(block["t"])
+        for f in ("wx", "wy", "wz", "ax", "ay", "az", "temp"):
+            finite &= np.isfinite(block[f])
         if not finite.all():
             self.dropped_nonfinite += int((~finite).sum())
             block = block[finite]
