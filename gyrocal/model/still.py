@@ -149,9 +149,10 @@ def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: Stil
     quantised still axis (CAN: 1 mg) has a rolling std of exactly 0 in many windows, which would
     otherwise make nothing still.
     """
-    gq = np.maximum(np.quantile(std, rule.quantile, axis=0), 1e-9)
+    q = np.quantile(np.hstack([std, astd]), rule.quantile, axis=0)  # per column: one call for both
+    gq = np.maximum(q[:3], 1e-9)
     floor = np.maximum(1e-6, 0.5 * (np.zeros(3) if accel_quantum_g is None else accel_quantum_g))
-    aq = np.maximum(np.quantile(astd, rule.quantile, axis=0), floor)
+    aq = np.maximum(q[3:], floor)
     centre = np.empty(3)
     slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
     for k in range(3):
