@@ -24,7 +24,7 @@ from tests.sim_helpers import MULTICAST_GROUP, free_udp_port, multicast_works, w
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
-WAIT_S = 75.0  # generous bound on the first push; never asserted as a time
+WAIT_S = 120.0  # generous bound on the first push (a loaded CI machine); never asserted as a time
 EXTENDED = bool(os.environ.get("GYROCAL_EXTENDED"))
 """Cases that repeat another's coverage on a second transport or node run only with GYROCAL_EXTENDED=1,
 so the suite stays within its time budget."""
