@@ -126,9 +126,10 @@ class ReplayUnit:
         self._note_temperature(block)
         if self.ours is None:  # the recorded output stands: no need for the rate (a fit per block)
             return block
-        dtemp = self._temperature_rate()
         cols = {c: block[c] for c in ("t", "ax", "ay", "az", "temp")}
-        cols.update(t_on=block["t"] - self._t0, dtemp=np.full(block.size, dtemp))
+        cols["t_on"] = block["t"] - self._t0
+        if self._needs_dtemp():  # a least-squares fit per block: only for sets with a dtemp term
+            cols["dtemp"] = np.full(block.size, self._temperature_rate())
         delta = self._delta(cols)
         out = block.copy()
         out["wx"] += delta[:, 0]
@@ -136,8 +137,8 @@ class ReplayUnit:
         out["wz"] += delta[:, 2]
         return out
 
-    def _delta(self, cols: dict[str, np.ndarray]) -> np.ndarray:
-        """C_rec . phi - C_ours . phi, (N, 3) [deg/s]: one design matrix when both sets share terms."""
+    def _specs(self) -> tuple[TermSpec, TermSpec | None]:
+        """The term specs of our set and (when its terms differ) the recorded set, parsed once."""
         rec, ours = self.recorded, self.ours
         assert ours is not None
         key = (rec.names, ours.names)
@@ -145,6 +146,18 @@ class ReplayUnit:
             self._spec_key = key
             self._spec_ours = TermSpec.parse(ours.names)
             self._spec_rec = TermSpec.parse(rec.names) if rec.names and rec.names != ours.names else None
+        assert self._spec_ours is not None
+        return self._spec_ours, self._spec_rec
+
+    def _needs_dtemp(self) -> bool:
+        ours, rec = self._specs()
+        return "dtemp" in ours.atoms or (rec is not None and "dtemp" in rec.atoms)
+
+    def _delta(self, cols: dict[str, np.ndarray]) -> np.ndarray:
+        """C_rec . phi - C_ours . phi, (N, 3) [deg/s]: one design matrix when both sets share terms."""
+        rec, ours = self.recorded, self.ours
+        assert ours is not None
+        self._specs()
         phi = self._spec_ours.design(cols)
         if rec.names == ours.names:
             return phi @ (rec.coeffs_dps - ours.coeffs_dps).T
