@@ -71,8 +71,8 @@ fill: at 2 kHz the next round finds ~20 samples or more. The cost of a round is 
 still detector's windows span ``still.window_s`` whatever the block size, plus numpy's per-call
 overhead): at 2 kHz on a pty, rounds every 2 ms cost the engine thread 1.8 s of CPU per 10 s,
 every 10 ms 1.0 s, for a few ms more of a sample-to-weights latency of ~200 ms (the still
-detector's look-ahead; benchmarks/bench_daemon.py). An item in ``inbox`` (a unit message, a link
-event, a command) ends the wait at once."""
+detector's look-ahead; benchmarks/bench_daemon.py). Unit messages and commands wait at most this
+long more (the default push ack timeout is 1 s)."""
 
 RECONNECT_MAX_S = 1.0
 """Cap on the link's reconnect back-off [s] (the config's ``link.reconnect_max_s`` may only lower it):
@@ -241,10 +241,9 @@ class Engine(CommandsMixin):
             if deadline is not None and now > deadline:
                 break
             if n < 64 and self.idle_sleep_s > 0:
-                try:  # a unit message, link event or command ends the wait at once
-                    self._pending.append(self.inbox.get(timeout=self.idle_sleep_s))
-                except queue.Empty:
-                    pass
+                # a plain sleep, not a blocking inbox.get: the signal handlers put into the inbox from
+                # this thread, and must never find its lock held by the code they interrupted
+                time.sleep(self.idle_sleep_s)
 
     def _contain(self, where: str, fn: Any, *args: Any) -> Any:
         """Run one handler; an exception is logged (once per kind, then every 1000th) and counted."""
