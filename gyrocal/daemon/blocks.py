@@ -58,30 +58,29 @@ class BlockAccumulator:
         partial block of at least half the size is kept) and are never trained on.
         """
         done: list[Block] = []
-        train = np.zeros(still.shape[0], dtype=bool)
-        i, n = 0, still.shape[0]
-        while i < n:
-            if not still[i]:
+        n = still.shape[0]
+        train = np.zeros(n, dtype=bool)
+        if n == 0:
+            return done, train
+        # runs of equal flags found by numpy; the loop below goes per run and per block, not per sample
+        edges = np.flatnonzero(still[1:] != still[:-1]) + 1
+        for s, e in zip([0, *edges.tolist()], [*edges.tolist(), n], strict=True):
+            if not still[s]:
                 self._close(done, partial=True)
-                j = i + 1
-                while j < n and not still[j]:
-                    j += 1
-                i = j
                 continue
-            j = i
-            room = self.size - self._n
-            while j < n and still[j] and j - i < room:
-                j += 1
-            sl = slice(i, j)
-            if not self.current_is_holdout:
-                train[sl] = True
-            self._raw += raw[sl].sum(axis=0)
-            self._out += out[sl].sum(axis=0)
-            self._phi += phi[sl].sum(axis=0)
-            self._n += j - i
-            if self._n >= self.size:
-                self._close(done, partial=False)
-            i = j
+            i = s
+            while i < e:
+                j = min(e, i + self.size - self._n)
+                sl = slice(i, j)
+                if not self.current_is_holdout:
+                    train[sl] = True
+                self._raw += raw[sl].sum(axis=0)
+                self._out += out[sl].sum(axis=0)
+                self._phi += phi[sl].sum(axis=0)
+                self._n += j - i
+                if self._n >= self.size:
+                    self._close(done, partial=False)
+                i = j
         return done, train
 
     def discard_partial(self) -> None:

@@ -65,6 +65,15 @@ SILENT_AFTER_S = 2.0
 """No sample for this long [s] on a connected link: the unit is silent (vanished, stalled, or a
 CAN bus on which it no longer sends). A unit at >= 10 Hz sends 20 samples in that time."""
 
+IDLE_SLEEP_S = 0.01
+"""A round of the loop that handled fewer than 64 samples then waits this long [s] for the ring to
+fill: at 2 kHz the next round finds ~20 samples or more. The cost of a round is mostly fixed (the
+still detector's windows span ``still.window_s`` whatever the block size, plus numpy's per-call
+overhead): at 2 kHz on a pty, rounds every 2 ms cost the engine thread 1.8 s of CPU per 10 s,
+every 10 ms 1.0 s, for a few ms more of a sample-to-weights latency of ~200 ms (the still
+detector's look-ahead; benchmarks/bench_daemon.py). Unit messages and commands wait at most this
+long more (the default push ack timeout is 1 s)."""
+
 RECONNECT_MAX_S = 1.0
 """Cap on the link's reconnect back-off [s] (the config's ``link.reconnect_max_s`` may only lower it):
 recovery after the unit returns must take at most ~2 s on every transport."""
@@ -127,6 +136,7 @@ class Engine(CommandsMixin):
         # sample-to-weights latency [s]: a fixed-size reservoir of the newest values (O(1) memory)
         self._lat = np.full(1 << 14, np.nan)
         self._lat_i = 0
+        self.idle_sleep_s = IDLE_SLEEP_S  # `gyrocal replay` sets 0: nothing arrives while it sleeps
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _new_detector(self, rate_hz: float) -> StillDetector:
@@ -230,8 +240,10 @@ class Engine(CommandsMixin):
                 break
             if deadline is not None and now > deadline:
                 break
-            if n < 64:
-                time.sleep(0.002)
+            if n < 64 and self.idle_sleep_s > 0:
+                # a plain sleep, not a blocking inbox.get: the signal handlers put into the inbox from
+                # this thread, and must never find its lock held by the code they interrupted
+                time.sleep(self.idle_sleep_s)
 
     def _contain(self, where: str, fn: Any, *args: Any) -> Any:
         """Run one handler; an exception is logged (once per kind, then every 1000th) and counted."""
@@ -380,8 +392,9 @@ class Engine(CommandsMixin):
             log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
 
     def _on_samples(self, block: np.ndarray, now: float) -> None:
-        fields = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp")
-        finite = np.all(np.column_stack([np.isfinite(block[f]) for f in fields]), axis=1)
+        finite = np.isfinite(block["t"])
+        for f in ("wx", "wy", "wz", "ax", "ay", "az", "temp"):
+            finite &= np.isfinite(block[f])
         if not finite.all():
             self.dropped_nonfinite += int((~finite).sum())
             block = block[finite]

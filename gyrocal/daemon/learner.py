@@ -96,6 +96,18 @@ class Learner:
         self._sum_res2 = np.zeros(3)
         self._n = 0
         self.prior_left = self._prior_left(prior) if self.has_prior else {}
+        # reads of the estimator (eigen-decompositions of R) are pure functions of its state, which
+        # only update_many changes: they are computed once per update and kept until the next one
+        self._version = 0
+        self._cache: dict[str, tuple[int, Any]] = {}
+
+    def _cached(self, key: str, compute: Any) -> Any:
+        hit = self._cache.get(key)
+        if hit is not None and hit[0] == self._version:
+            return hit[1]
+        value = compute()
+        self._cache[key] = (self._version, value)
+        return value
 
     @staticmethod
     def _prior_left(prior: Any) -> dict[str, np.ndarray]:
@@ -110,6 +122,7 @@ class Learner:
 
     def update_many(self, phi: np.ndarray, raw_dps: np.ndarray, t_s: np.ndarray | None = None) -> None:
         # only the Kalman filter uses time (its bias states move with dt); the others stay as they were
+        self._version += 1
         self.est.update_many(phi, raw_dps, t_s if self.est.method == "kf" else None)
         if self.prior is not None:
             res = raw_dps - phi @ self.prior.T
@@ -122,7 +135,10 @@ class Learner:
     def bias_only(self) -> bool:
         """True while a warm start lacks the excitation for a full update (see the module docstring)."""
         return (self.prior is not None and self.const is not None and self._n > 0
-                and self.est.identifiability.rank < self.full_rank)
+                and self._identifiability().rank < self.full_rank)
+
+    def _identifiability(self) -> Any:
+        return self._cached("ident", lambda: self.est.identifiability)
 
     @property
     def samples(self) -> int:
@@ -134,7 +150,7 @@ class Learner:
             c = self.prior.copy()
             c[:, self.const] += self._sum_res / self._n
             return c
-        return self.est.coefficients
+        return self._cached("coefficients", lambda: self.est.coefficients).copy()
 
     @property
     def uncertainty(self) -> np.ndarray:
@@ -144,7 +160,7 @@ class Learner:
             var = np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
             sig[:, self.const] = np.sqrt(var / self._n)
             return sig
-        return self.est.uncertainty
+        return self._cached("uncertainty", lambda: self.est.uncertainty).copy()
 
     def residual_var(self) -> np.ndarray:
         """Per-sample variance (3,) [deg/s^2] of the stored set's residual this session (bias stage)."""
@@ -154,11 +170,11 @@ class Learner:
         return np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
 
     def identifiable(self) -> dict[str, Any]:
-        return self.est.identifiability.as_contract()
+        return self._identifiability().as_contract()
 
     @property
     def converged(self) -> tuple[bool, str]:
-        st = self.est.convergence()
+        st = self._cached("convergence", self.est.convergence)
         return st.converged, st.reason
 
     def state(self) -> dict[str, Any]:
@@ -191,11 +207,7 @@ class Learner:
             inf = np.full(3, np.inf)
             return {"left_poses": inf, "left_sphere": inf.copy(), "removes": removes, "stage": "full"}
         est = self.est
-        R, b, q, neff = est._totals()
-        w, lam_r, v_r, v_n = rank_aware_solve(R, b, est.w0, est.rank_tol)
-        rss = np.maximum(q - 2 * (w * b).sum(axis=0) + (w * (R @ w)).sum(axis=0), 0.0)
-        dof = neff - lam_r.size
-        var = rss / dof if dof > 0 else np.full(3, np.inf)
+        var, lam_r, v_r, v_n = self._cached("solve", self._solve)
 
         def rms_se(phi: np.ndarray, null_test: bool) -> np.ndarray:
             z = phi @ est.norm.M.T  # (K, P) normalised terms
@@ -211,6 +223,16 @@ class Learner:
         infl = self._inflation(held_out, var, est, v_r, lam_r)
         return {"left_poses": rms_se(poses_phi, False) * infl, "left_sphere": rms_se(sphere_phi, True) * infl,
                 "removes": removes, "stage": "full", "noise_inflation": infl}
+
+    def _solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Residual variance (3,) [deg/s^2] and the eigen-split of R, for the predicted drift."""
+        est = self.est
+        R, b, q, neff = est._totals()
+        w, lam_r, v_r, v_n = rank_aware_solve(R, b, est.w0, est.rank_tol)
+        rss = np.maximum(q - 2 * (w * b).sum(axis=0) + (w * (R @ w)).sum(axis=0), 0.0)
+        dof = neff - lam_r.size
+        var = rss / dof if dof > 0 else np.full(3, np.inf)
+        return var, lam_r, v_r, v_n
 
     def _inflation(self, blocks: Any, var: np.ndarray, est: Any, v_r: np.ndarray,
                    lam_r: np.ndarray) -> np.ndarray:

@@ -94,12 +94,14 @@ class AppliedSet:
     names: tuple[str, ...]
     coeffs_dps: np.ndarray  # (3, P) deg/s per term unit
 
-    def compensation(self, cols: dict[str, np.ndarray]) -> np.ndarray:
-        """What the unit subtracts from its output, (N, 3) [deg/s]."""
+    def compensation(self, cols: dict[str, np.ndarray], phi: np.ndarray | None = None) -> np.ndarray:
+        """What the unit subtracts from its output, (N, 3) [deg/s]; ``phi``: these cols' terms, if known."""
         if not self.names or not np.any(self.coeffs_dps):
             return np.zeros((cols["t"].shape[0], 3))
         # gravity terms from a/|a|, as the unit computes them (docs/protocol.md, section 6)
-        return block_terms(TermSpec.parse(self.names), cols) @ self.coeffs_dps.T
+        if phi is None:
+            phi = block_terms(TermSpec.parse(self.names), cols)
+        return phi @ self.coeffs_dps.T
 
     @classmethod
     def from_report(cls, msg: CoeffReport) -> AppliedSet:
@@ -241,10 +243,10 @@ class Session(RecoveryMixin):
             "dtemp": self._trate.update(samples["t"], samples["temp"]),
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
-        raw = out + self._compensation(samples["seq"], cols)
         # learn on gravity as a unit vector (gx^2 + gy^2 + gz^2 = 1 exactly, so the structural null
-        # direction is exact); the unit applies its set on the measured accel, hence raw above
+        # direction is exact); the unit applies its set on the measured accel, hence raw below
         phi = block_terms(self.spec, cols)
+        raw = out + self._compensation(samples["seq"], cols, phi)
         blocks, train = self.acc.feed(raw, out, phi, still)
         self.still_samples += int(still.sum())
         if train.any() and self.state is not State.PUSHING:
@@ -295,9 +297,14 @@ class Session(RecoveryMixin):
                "the set removes")
         return ok, why
 
-    def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray]) -> np.ndarray:
-        """What the unit subtracted from each sample, (N, 3) [deg/s], switching sets at the ack."""
-        comp = self.applied.compensation(cols) if self.applied is not None else np.zeros((seq.size, 3))
+    def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray],
+                      phi: np.ndarray | None = None) -> np.ndarray:
+        """What the unit subtracted from each sample, (N, 3) [deg/s], switching sets at the ack.
+
+        ``phi``: the session's terms of these cols, reused when the unit's set has the same terms."""
+        a = self.applied
+        same = phi is not None and a is not None and tuple(a.names) == tuple(self.names)
+        comp = a.compensation(cols, phi if same else None) if a is not None else np.zeros((seq.size, 3))
         if self._switch is None:
             return comp
         new, last_seq = self._switch

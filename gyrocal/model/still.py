@@ -18,13 +18,13 @@ works at 100 Hz and at 2 kHz. Units: gyro deg/s, accel g, time s, rate Hz.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 AXES = ("x", "y", "z")
+_FIELDS = ("wx", "wy", "wz", "ax", "ay", "az")
 QUIET_QUANTILE = 0.1
 """The quiet level is this quantile of the rolling std: still for at least this share of the log."""
 
@@ -110,20 +110,26 @@ def sample_rate_hz(t: np.ndarray, session: np.ndarray) -> float:
 
 
 def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Centred rolling mean and std of x (N,) over w samples (edges use shorter windows).
+    """Centred rolling mean and std of the columns of x (N, K) over w samples (edges: shorter windows).
 
-    The sums run on x minus its first value, which keeps the variance free of cancellation when the
-    gyro carries a large rate (a turn) beside a 0.002 deg/s noise.
+    The sums run on x minus its first row, which keeps the variance free of cancellation when the
+    gyro carries a large rate (a turn) beside a 0.002 deg/s noise. All columns at once: the
+    cumulative sums run down each column in order, so every column's figures are those of the
+    column on its own, bit for bit (tests/test_still_perf.py).
     """
-    n = x.size
-    x0 = x[0] if n else 0.0
+    n = x.shape[0]
+    x0 = x[0] if n else np.zeros(x.shape[1:])
     x = x - x0
-    cs = np.concatenate(([0.0], np.cumsum(x)))
-    cs2 = np.concatenate(([0.0], np.cumsum(x * x)))
+    cs = np.empty((n + 1,) + x.shape[1:])
+    cs[0] = 0.0
+    np.cumsum(x, axis=0, out=cs[1:])
+    cs2 = np.empty_like(cs)
+    cs2[0] = 0.0
+    np.cumsum(x * x, axis=0, out=cs2[1:])
     i = np.arange(n)
     lo = np.clip(i - w // 2, 0, n)
     hi = np.clip(i + w - w // 2, 0, n)
-    cnt = hi - lo
+    cnt = (hi - lo)[:, None]
     mean = (cs[hi] - cs[lo]) / cnt
     var = np.maximum((cs2[hi] - cs2[lo]) / cnt - mean**2, 0.0)
     return mean + x0, np.sqrt(var)
@@ -131,13 +137,8 @@ def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
 
 def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rolling gyro mean (N, 3) [deg/s], gyro std (N, 3) [deg/s], accel std (N, 3) [g] over w samples."""
-    mean = np.empty_like(gyro)
-    std = np.empty_like(gyro)
-    astd = np.empty_like(accel)
-    for k in range(3):
-        mean[:, k], std[:, k] = _rolling(gyro[:, k], w)
-        _, astd[:, k] = _rolling(accel[:, k], w)
-    return mean, std, astd
+    mean, std = _rolling(np.hstack([np.asarray(gyro, dtype=float), np.asarray(accel, dtype=float)]), w)
+    return mean[:, :3], std[:, :3], std[:, 3:]
 
 
 def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: StillRule,
@@ -148,9 +149,10 @@ def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, rule: Stil
     quantised still axis (CAN: 1 mg) has a rolling std of exactly 0 in many windows, which would
     otherwise make nothing still.
     """
-    gq = np.maximum(np.quantile(std, rule.quantile, axis=0), 1e-9)
+    q = np.quantile(np.hstack([std, astd]), rule.quantile, axis=0)  # per column: one call for both
+    gq = np.maximum(q[:3], 1e-9)
     floor = np.maximum(1e-6, 0.5 * (np.zeros(3) if accel_quantum_g is None else accel_quantum_g))
-    aq = np.maximum(np.quantile(astd, rule.quantile, axis=0), floor)
+    aq = np.maximum(q[3:], floor)
     centre = np.empty(3)
     slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
     for k in range(3):
@@ -192,8 +194,12 @@ def detect_still(
 
 
 def _quantum(x: np.ndarray) -> float:
-    """The smallest step between distinct values (the quantisation LSB), from up to 200k samples."""
-    steps = np.diff(np.unique(x[:200_000]))
+    """The smallest step between distinct values (the quantisation LSB), from up to 200k samples.
+
+    Steps between neighbours of the sorted values: the same steps as between the distinct values
+    (``np.unique``), without building the distinct set.
+    """
+    steps = np.diff(np.sort(x[:200_000]))
     steps = steps[steps > 0]
     return float(steps.min()) if steps.size else 0.0
 
@@ -240,7 +246,11 @@ class StreamingStill:
         self.min_len = max(self.rule.min_run(self.rate_hz), 1)
         self.step = max(1, self.w // 4)  # history decimation
         hist = int(min(4096, max(64, self.rule.memory_s * self.rate_hz / self.step)))
-        self._hist: deque[np.ndarray] = deque(maxlen=hist)  # rows of (mean 3, std 3, astd 3)
+        # rows of (mean 3, std 3, astd 3), the newest ``hist``, in a circular buffer: the quiet level
+        # is a quantile and a median over them, which do not depend on the rows' order
+        self._hist = np.empty((hist, 9))
+        self._hist_n = 0  # rows held
+        self._hist_i = 0  # where the next row goes
         self._learn_rows = int(round(self.rule.learn_s * self.rate_hz))
         self.levels: QuietLevels | None = None
         self.seen = 0  # rows fed
@@ -278,19 +288,21 @@ class StreamingStill:
         if upto > self._stat_from and n:
             lo = max(0, self._stat_from - self.behind)
             part = rows[lo:n]
-            gyro = np.column_stack([part[f"w{a}"] for a in AXES]).astype(float)
-            accel = np.column_stack([part[f"a{a}"] for a in AXES]).astype(float)
+            x = np.empty((part.size, 6))
+            for k, f in enumerate(_FIELDS):
+                x[:, k] = part[f]
             for k in range(3):
-                self._quantum[k] = min(self._quantum[k], _quantum(accel[:, k]) or np.inf)
+                self._quantum[k] = min(self._quantum[k], _quantum(x[:, 3 + k]) or np.inf)
             # centred windows: rows before _stat_from are kept as look-behind for this purpose
-            mean, std, astd = rolling_stats(gyro, accel, self.w)
+            mean, std = _rolling(x, self.w)
             sel = slice(self._stat_from - lo, upto - lo)
-            stats = np.hstack([mean[sel], std[sel], astd[sel]])
+            stats = np.empty((upto - self._stat_from, 9))
+            stats[:, 0:3] = mean[sel, 0:3]
+            stats[:, 3:9] = std[sel]
             self._pending_rows.append(rows[self._stat_from:upto])
             self._pending_stats.append(stats)
             first = self._stat_index
-            take = (np.arange(first, first + stats.shape[0]) % self.step) == 0
-            self._hist.extend(stats[take])
+            self._add_history(stats[(-first) % self.step::self.step])
             self._stat_index += upto - self._stat_from
             keep = max(0, upto - self.behind)
             self._rows = rows[keep:]
@@ -299,7 +311,7 @@ class StreamingStill:
             return self._emit(final=False)
         if self._pending_stats:
             if self._stat_index - self._levels_at >= max(1, self.rate_hz * 0.25) or final:
-                h = np.array(self._hist) if self._hist else np.vstack(self._pending_stats)
+                h = self._hist[:self._hist_n] if self._hist_n else np.vstack(self._pending_stats)
                 quantum = np.where(np.isfinite(self._quantum), self._quantum, 0.0)
                 self.levels = quiet_levels(h[:, 0:3], h[:, 3:6], h[:, 6:9], self.rule, quantum)
                 self._levels_at = self._stat_index
@@ -311,6 +323,18 @@ class StreamingStill:
             self._q_rows = prs if self._q_rows is None else np.concatenate([self._q_rows, prs])
             self._q_ok = np.concatenate([self._q_ok, ok])
         return self._emit(final)
+
+    def _add_history(self, rows: np.ndarray) -> None:
+        """Keep the newest ``len(self._hist)`` decimated statistics rows (a bounded memory)."""
+        cap = self._hist.shape[0]
+        rows = rows[-cap:]
+        m = rows.shape[0]
+        i = self._hist_i
+        first = min(m, cap - i)
+        self._hist[i:i + first] = rows[:first]
+        self._hist[:m - first] = rows[first:]
+        self._hist_i = (i + m) % cap
+        self._hist_n = min(cap, self._hist_n + m)
 
     def _emit(self, final: bool) -> tuple[np.ndarray, np.ndarray]:
         """Apply margins and the minimum length to the queued quiet flags; return the decided prefix.

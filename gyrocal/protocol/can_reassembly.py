@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import binascii
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +48,25 @@ MAX_AGE = 6
 """A partial sample older than this many sample frames can no longer complete."""
 
 
+def _raw_decoder(message: Any) -> Callable[[bytes], dict[str, int]]:
+    """The raw signal values of a frame of ``message`` (a cantools Message), as ``decode_simple``
+    gives them with ``decode_choices=False, scaling=False`` on data of the right length.
+
+    For a plain message (no multiplexer, not a container) that is the union of cantools' compiled
+    big- and little-endian bitstruct unpacks, which is what ``decode_simple`` computes below four
+    layers of Python calls; called directly, a frame decodes ~3x faster (a .blf log holds three
+    frames per sample). Anything else, or a cantools without these internals, takes the public call.
+    """
+    codecs = getattr(message, "_codecs", None)
+    formats = codecs.get("formats") if isinstance(codecs, dict) else None
+    plain = (formats is not None and not codecs.get("multiplexers") and not message.is_container
+             and hasattr(formats, "big_endian") and hasattr(formats, "little_endian"))
+    if not plain:
+        return lambda data: message.decode_simple(data, decode_choices=False, scaling=False)
+    big, little = formats.big_endian.unpack, formats.little_endian.unpack
+    return lambda data: {**big(data), **little(data[::-1])}
+
+
 @dataclass
 class _Transfer:
     """A coefficient set being received: 6*n 32-bit words, each expected exactly once."""
@@ -81,8 +101,10 @@ class CanDecoder:
             codec = CanCodec(node_id=node_id)
         self.node_id = codec.node_id
         self.stats = DecoderStats()
-        self._by_id: dict[int, tuple[Any, Any]] = {
-            codec.ids[name]: (getattr(self, f"_on_{name.lower()}"), codec.by_name[name]) for name in codec.ids
+        self._by_id: dict[int, tuple[Any, Any, int]] = {
+            codec.ids[name]: (getattr(self, f"_on_{name.lower()}"), _raw_decoder(codec.by_name[name]),
+                              codec.by_name[name].length)
+            for name in codec.ids
         }
         self.reset()
 
@@ -110,14 +132,14 @@ class CanDecoder:
             else:
                 st.foreign_frames += 1
             return []
-        handler, message = entry
+        handler, decode, length = entry
         data = bytes(frame.data)
         st.bytes += len(data)
-        if len(data) != message.length:
+        if len(data) != length:
             st.length_errors += 1
             return []
         st.frames += 1
-        return handler(message.decode_simple(data, decode_choices=False, scaling=False))
+        return handler(decode(data))
 
     # -- samples -------------------------------------------------------------------------------
     def _on_sample_time(self, raw: dict[str, int]) -> list[object]:

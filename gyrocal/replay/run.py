@@ -39,6 +39,7 @@ class Replay:
         self.recording = recording
         self.clock = SimClock()
         self.engine = Engine(cfg, clock=self.clock)
+        self.engine.idle_sleep_s = 0.0  # the loop pumps the next chunk itself: never wait for one
         self.link = ReplayLink(recording, self.engine.ring, self.engine._on_control, self.engine._on_event,
                                clock=self.clock, chunk_s=chunk_s)
         self.engine.link = self.link

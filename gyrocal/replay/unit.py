@@ -59,6 +59,7 @@ class ReplayUnit:
         self.unit_time_s = 0.0
         self._t0: float | None = None
         self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)
+        self._temp_t = 0.0  # unit time [s] of the newest output block
         self._spec_key: tuple[tuple[str, ...], tuple[str, ...]] | None = None
         self._spec_ours: TermSpec | None = None
         self._spec_rec: TermSpec | None = None
@@ -122,11 +123,13 @@ class ReplayUnit:
         if self._t0 is None:
             self._t0 = float(block["t"][0])
         self.unit_time_s = float(block["t"][-1])
-        dtemp = self._temperature_rate(block)
-        if self.ours is None:
+        self._note_temperature(block)
+        if self.ours is None:  # the recorded output stands: no need for the rate (a fit per block)
             return block
         cols = {c: block[c] for c in ("t", "ax", "ay", "az", "temp")}
-        cols.update(t_on=block["t"] - self._t0, dtemp=np.full(block.size, dtemp))
+        cols["t_on"] = block["t"] - self._t0
+        if self._needs_dtemp():  # a least-squares fit per block: only for sets with a dtemp term
+            cols["dtemp"] = np.full(block.size, self._temperature_rate())
         delta = self._delta(cols)
         out = block.copy()
         out["wx"] += delta[:, 0]
@@ -134,8 +137,8 @@ class ReplayUnit:
         out["wz"] += delta[:, 2]
         return out
 
-    def _delta(self, cols: dict[str, np.ndarray]) -> np.ndarray:
-        """C_rec . phi - C_ours . phi, (N, 3) [deg/s]: one design matrix when both sets share terms."""
+    def _specs(self) -> tuple[TermSpec, TermSpec | None]:
+        """The term specs of our set and (when its terms differ) the recorded set, parsed once."""
         rec, ours = self.recorded, self.ours
         assert ours is not None
         key = (rec.names, ours.names)
@@ -143,6 +146,18 @@ class ReplayUnit:
             self._spec_key = key
             self._spec_ours = TermSpec.parse(ours.names)
             self._spec_rec = TermSpec.parse(rec.names) if rec.names and rec.names != ours.names else None
+        assert self._spec_ours is not None
+        return self._spec_ours, self._spec_rec
+
+    def _needs_dtemp(self) -> bool:
+        ours, rec = self._specs()
+        return "dtemp" in ours.atoms or (rec is not None and "dtemp" in rec.atoms)
+
+    def _delta(self, cols: dict[str, np.ndarray]) -> np.ndarray:
+        """C_rec . phi - C_ours . phi, (N, 3) [deg/s]: one design matrix when both sets share terms."""
+        rec, ours = self.recorded, self.ours
+        assert ours is not None
+        self._specs()
         phi = self._spec_ours.design(cols)
         if rec.names == ours.names:
             return phi @ (rec.coeffs_dps - ours.coeffs_dps).T
@@ -150,11 +165,16 @@ class ReplayUnit:
             and np.any(rec.coeffs_dps) else 0.0
         return comp_rec - phi @ ours.coeffs_dps.T
 
-    def _temperature_rate(self, block: np.ndarray) -> float:
-        """dT/dt [degC/s] as the daemon estimates it: the slope of 1 s means over the last 20 s."""
+    def _note_temperature(self, block: np.ndarray) -> None:
+        """Keep one (t [s], mean temp [degC]) point per second of the output, for the rate."""
         t, temp = float(block["t"][-1]), float(np.mean(block["temp"]))
+        self._temp_t = t
         if not self._temp_hist or t - self._temp_hist[-1][0] >= 1.0:
             self._temp_hist.append((t, temp))
+
+    def _temperature_rate(self) -> float:
+        """dT/dt [degC/s] as the daemon estimates it: the slope of 1 s means over the last 20 s."""
+        t = self._temp_t
         pts = [(ti, yi) for ti, yi in self._temp_hist if t - ti <= 20.0]
         if len(pts) < 3:
             return 0.0
