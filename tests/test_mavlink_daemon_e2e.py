@@ -46,11 +46,7 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
         cfg = {
             "link": {"kind": "mavlink", "url": ap.address, "mavlink": {"autopilot": "ardupilot"}},
             "virtual_unit": {"enabled": False},
-            "estimator": {
-                "terms": ["1", "temp", "temp^2"],
-                "convergence": {"max_change_dps": 1.0, "max_sigma_dps": 1.0},
-            },
-            "still": {"gyro_std_dps": 0.2},
+            "estimator": {"terms": ["1", "temp", "temp^2"]},
             "state_dir": str(tmp_path / "state"),
             "control_socket": str(tmp_path / "ctl.sock"),
             "watchdog": False,
