@@ -1,5 +1,6 @@
 """Benchmark: the real daemon (``gyrocal run``, link kind mavlink) calibrates virtual autopilots.
 
+The error is computed by gyrocal/sim/autopilot_truth.py (the same as ``gyrocal demo --mavlink``).
 For each autopilot (PX4, ArduPilot): start ``gyrocal sim --link mavlink`` on a pty (a board warming
 from 20 to 50 degC), run the daemon with the temperature polynomial as its model through the warm-up
 (4 time constants, at least until its first push; it pushes again when a wider range improves the
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.mavlink.profiles import PROFILES
-from gyrocal.sim.autopilot import VirtualAutopilot
+from gyrocal.sim.autopilot_truth import offset_errors
 
 DPH = 3600.0
 TERMS = ["1", "temp", "temp^2"]
@@ -135,41 +136,6 @@ def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> d
         "pushes": pushes,
         "flash": json.loads((work / "flash.json").read_text()),
     }
-
-
-def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: np.ndarray) -> dict[str, Any]:
-    """Before/after offset error [deg/h] (N, 3) at ``temps`` for the learning boot (boot 1)."""
-    ap = VirtualAutopilot(kind, 250, seed)
-    ap.power_on()
-    before_params = dict(ap.params)
-    prof = PROFILES[kind](0)
-    raw = ap.raw_offset_dps(temps)
-
-    def error(p: dict[str, float]) -> np.ndarray:
-        from gyrocal.mavlink.poly import evaluate
-
-        return raw - (evaluate(prof.applied(p), temps) + prof.clamp_adjust(p, temps))
-
-    after_params = {**before_params, **{k: float(v) for k, v in final_params.items() if k in before_params}}
-    if kind == "ardupilot":  # the learning boot's own gyro calibration, not the one saved at the last boot
-        for k in ("INS_GYROFFS_X", "INS_GYROFFS_Y", "INS_GYROFFS_Z", "INS_GYR1_CALTEMP"):
-            after_params[k] = (
-                final_params[k] if final_params.get("INS_TCAL1_ENABLE") == 1 else before_params[k]
-            )
-    b, a = error(before_params) * DPH, error(after_params) * DPH
-    out: dict[str, Any] = {
-        "temps_c": temps.round(2).tolist(),
-        "before_dph": b.round(1).tolist(),
-        "after_dph": a.round(1).tolist(),
-        "shape_after_dph": (a - a.mean(axis=0)).round(1).tolist(),
-    }
-    out["improvement_x"] = (
-        (np.max(np.abs(b), axis=0) / np.maximum(np.max(np.abs(a), axis=0), 1e-9)).round(1).tolist()
-    )
-    if kind == "px4":
-        slope = np.abs(np.gradient(raw, temps, axis=0)).max(axis=0)
-        out["px4_staircase_dph"] = (slope * 1.0 * DPH).round(1).tolist()
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:
