@@ -114,7 +114,8 @@ def print_table(res: dict[str, Any]) -> None:
     print(f"{kind}: virtual autopilot {res['unit_serial']} (seed {res['seed']}) over a pty; "
           f"set v{res['version']} pushed and read back {res['first_push_s']} s after its HELLO; it holds "
           f"{res['tmin_c']:.1f}..{res['tmax_c']:.1f} degC (the range seen)")
-    print("  temp [degC]   offset error before [deg/h]: x, y, z       after [deg/h]: x, y, z")
+    print(f"  {'temp':>11}   {'before x':>9} {'y':>9} {'z':>9}        {'after x':>9} {'y':>9} {'z':>9}"
+          "   (offset error [deg/h]; temp [degC])")
     for t, b, a in zip(res["temps_c"], res["before_dph"], res["after_dph"], strict=True):
         cells = " ".join(f"{v:9.1f}" for v in b) + "        " + " ".join(f"{v:9.1f}" for v in a)
         print(f"  {t:11.1f}   {cells}")
