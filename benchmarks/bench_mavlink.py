@@ -1,5 +1,6 @@
 """Benchmark: the real daemon (``gyrocal run``, link kind mavlink) calibrates virtual autopilots.
 
+The error is computed by gyrocal/sim/autopilot_truth.py (the same as ``gyrocal demo --mavlink``).
 For each autopilot (PX4, ArduPilot): start ``gyrocal sim --link mavlink`` on a pty (a board warming
 from 20 to 50 degC), run the daemon with the temperature polynomial as its model through the warm-up
 (4 time constants, at least until its first push; it pushes again when a wider range improves the
@@ -34,18 +35,12 @@ from typing import Any
 import numpy as np
 
 from gyrocal.mavlink.profiles import PROFILES
-from gyrocal.sim.autopilot import VirtualAutopilot
+from gyrocal.sim.autopilot_truth import offset_errors
 
 DPH = 3600.0
 TERMS = ["1", "temp", "temp^2"]
 """The daemon's model: a quadratic in temperature (docs/mavlink.md: the cubic term is not determined
 by the daemon's rank test over a 30 degC warm-up)."""
-CONVERGENCE = {"max_change_dps": 1.0, "max_sigma_dps": 1.0}
-"""The convergence rule's coefficient-space thresholds switched off for this term set: in a polynomial
-in absolute temperature a change of 1e-4 deg/s/degC^2 in c2 moves c0 by 0.12 deg/s (35^2 x 1e-4)
-while the curve over 20..50 degC barely moves, so the defaults (2e-4 deg/s) are never met. The
-rule on the a-priori error and the held-out validation (>= 20 % better) remain the gate. Phase 2:
-judge convergence on the curve over the range seen (docs/mavlink.md)."""
 
 
 def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> dict[str, Any]:
@@ -80,10 +75,7 @@ def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> d
     cfg = {
         "link": {"kind": "mavlink", "url": pty, "mavlink": {"autopilot": kind}},
         "virtual_unit": {"enabled": False},
-        "estimator": {"terms": TERMS, "convergence": CONVERGENCE},
-        # a consumer MEMS gyro after the autopilot's filter: ~0.05 deg/s of noise (the default
-        # still threshold, 0.05 deg/s, suits our own unit's grade and would reject half the windows)
-        "still": {"gyro_std_dps": 0.2},
+        "estimator": {"terms": TERMS},
         "state_dir": str(work / "state"),
         "control_socket": str(work / "ctl.sock"),
         "watchdog": False,
@@ -146,41 +138,6 @@ def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> d
     }
 
 
-def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: np.ndarray) -> dict[str, Any]:
-    """Before/after offset error [deg/h] (N, 3) at ``temps`` for the learning boot (boot 1)."""
-    ap = VirtualAutopilot(kind, 250, seed)
-    ap.power_on()
-    before_params = dict(ap.params)
-    prof = PROFILES[kind](0)
-    raw = ap.raw_offset_dps(temps)
-
-    def error(p: dict[str, float]) -> np.ndarray:
-        from gyrocal.mavlink.poly import evaluate
-
-        return raw - (evaluate(prof.applied(p), temps) + prof.clamp_adjust(p, temps))
-
-    after_params = {**before_params, **{k: float(v) for k, v in final_params.items() if k in before_params}}
-    if kind == "ardupilot":  # the learning boot's own gyro calibration, not the one saved at the last boot
-        for k in ("INS_GYROFFS_X", "INS_GYROFFS_Y", "INS_GYROFFS_Z", "INS_GYR1_CALTEMP"):
-            after_params[k] = (
-                final_params[k] if final_params.get("INS_TCAL1_ENABLE") == 1 else before_params[k]
-            )
-    b, a = error(before_params) * DPH, error(after_params) * DPH
-    out: dict[str, Any] = {
-        "temps_c": temps.round(2).tolist(),
-        "before_dph": b.round(1).tolist(),
-        "after_dph": a.round(1).tolist(),
-        "shape_after_dph": (a - a.mean(axis=0)).round(1).tolist(),
-    }
-    out["improvement_x"] = (
-        (np.max(np.abs(b), axis=0) / np.maximum(np.max(np.abs(a), axis=0), 1e-9)).round(1).tolist()
-    )
-    if kind == "px4":
-        slope = np.abs(np.gradient(raw, temps, axis=0)).max(axis=0)
-        out["px4_staircase_dph"] = (slope * 1.0 * DPH).round(1).tolist()
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fast warm-up (tau 25 s), 180 s limit per autopilot")
@@ -194,7 +151,6 @@ def main(argv: list[str] | None = None) -> int:
         "quick": args.quick,
         "warmup_tau_s": tau,
         "terms": TERMS,
-        "convergence": CONVERGENCE,
         "seed": args.seed,
     }
     with tempfile.TemporaryDirectory(prefix="bench_mavlink_") as tmp_dir:

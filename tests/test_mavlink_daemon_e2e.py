@@ -46,11 +46,7 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
         cfg = {
             "link": {"kind": "mavlink", "url": ap.address, "mavlink": {"autopilot": "ardupilot"}},
             "virtual_unit": {"enabled": False},
-            "estimator": {
-                "terms": ["1", "temp", "temp^2"],
-                "convergence": {"max_change_dps": 1.0, "max_sigma_dps": 1.0},
-            },
-            "still": {"gyro_std_dps": 0.2},
+            "estimator": {"terms": ["1", "temp", "temp^2"]},
             "state_dir": str(tmp_path / "state"),
             "control_socket": str(tmp_path / "ctl.sock"),
             "watchdog": False,
@@ -92,3 +88,19 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
 
     assert params["INS_TCAL1_TMAX"] - params["INS_TCAL1_TMIN"] > 5.0
     assert np.all(worst(params) < worst(before) / 5), (worst(before) * 3600, worst(params) * 3600)
+
+
+def test_demo_mavlink_calibrates_a_virtual_px4_and_says_it_needs_a_reboot() -> None:
+    """`gyrocal demo --mavlink` (one autopilot, to keep the suite short): acked, offset error cut on each
+    axis over the range seen, and the PX4's reboot-needed push reported (TC_G_ENABLE was 0 at boot)."""
+    out = subprocess.run(
+        [sys.executable, "-m", "gyrocal.cli", "demo", "--mavlink", "--autopilot", "px4", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads(out.stdout)["px4"]
+    assert res["acked"] and res["reboot_needed"]["version"] == res["version"]
+    assert res["tmax_c"] - res["tmin_c"] > 5.0
+    assert min(res["improvement_x"]) > 5.0, res

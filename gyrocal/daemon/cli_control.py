@@ -144,7 +144,7 @@ def _rows(coeffs: Any) -> list[tuple[str, list]] | None:
 _SHOWN = {"ok", "state", "reason", "message", "unit", "serial", "applied", "version", "samples",
           "still_samples", "trained_samples", "converged", "converged_reason", "rms_dps", "rms",
           "monitor_rms_dps", "alarm", "terms", "coefficients_dps", "coefficients", "uncertainty_dps",
-          "link", "ring", "last_push", "validation", "units"}
+          "link", "ring", "last_push", "validation", "units", "reboot_needed"}
 
 
 def format_status(reply: dict, width: int | None = None) -> str:
@@ -202,6 +202,9 @@ def _format_unit(s: dict, width: int = 100) -> str:
             break
     if s.get("alarm"):
         pairs.append(("ALARM", _fmt(s["alarm"])))
+    need = s.get("reboot_needed")
+    if isinstance(need, dict):  # a held set the unit applies only after its next reboot (docs/mavlink.md)
+        pairs.append(("REBOOT NEEDED", f"v{need.get('version')}: {need.get('why', '')}"))
     for key in ("link", "ring", "validation"):
         if isinstance(s.get(key), dict) and s[key]:
             pairs.append((key, _fmt(s[key])))

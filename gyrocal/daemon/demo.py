@@ -6,6 +6,9 @@ its poses until the estimator converges and validates, pushes the set, waits for
 read-back, and then asks the unit, which knows its own truth, how much drift is left in its
 compensated output. Exit status 0 means the set was pushed, acked and lowered the drift on every axis.
 
+``--mavlink`` calibrates a virtual PX4 and a virtual ArduPilot autopilot instead, and prints the gyro
+offset error before and after over the temperature range seen, in deg/h (gyrocal/mavlink/demo.py).
+
 ``--grade fibre|tactical|consumer`` runs a unit of that grade (gyrocal/sim/grades.py) instead of the
 demo's; the JSON then gains ``grade`` and ``predicted_drift_after`` (the drift the daemon predicted
 the set would leave, deg/s per axis, beside the measured ``drift_rms_after``) to Contract 4's keys.
@@ -46,6 +49,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="the virtual unit's grade (default: the demo's unit)")
     p.add_argument("--can-node-id", type=int, default=0, metavar="N", help="the unit's CAN node id (--can)")
     p.add_argument("--timeout", type=float, default=150.0, help="give up after this many seconds")
+    p.add_argument("--mavlink", action="store_true",
+                   help="calibrate a virtual PX4 and ArduPilot over MAVLink instead (docs/mavlink.md)")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot", "both"), default="both",
+                   help="with --mavlink: which virtual autopilot(s)")
     p.add_argument("--json", action="store_true", help="print Contract 4 JSON instead of a table")
     p.add_argument("--verbose", action="store_true", help="show the daemon's log lines")
 
@@ -127,6 +134,11 @@ def _dps(v: dict[str, Any] | None) -> dict[str, float | None]:
 
 def main(args: argparse.Namespace) -> int:
     setup_logging("INFO" if args.verbose else "WARNING")
+    if args.mavlink:
+        from gyrocal.mavlink import demo as mavlink_demo  # needs the mavlink extra (pymavlink)
+
+        kinds = ("px4", "ardupilot") if args.autopilot == "both" else (args.autopilot,)
+        return mavlink_demo.main(args.seed, args.timeout, args.json, kinds)
     res = run_demo("can" if args.can else "serial", args.seed, args.rate, args.timeout, args.grade,
                    args.can_node_id)
     before, after = res["drift_rms_before"], res["drift_rms_after"]

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.daemon.capabilities import of_link
 from gyrocal.daemon.commands import CommandsMixin
 from gyrocal.daemon.config import DaemonConfig
 from gyrocal.daemon.control import ControlServer
@@ -384,7 +385,8 @@ class Engine(CommandsMixin):
         self.detector = self._new_detector(rate)
         self._seq_session_at = None
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
-                               warm_started_from=None if prior is None else prior.version)
+                               warm_started_from=None if prior is None else prior.version,
+                               caps=of_link(self.link))  # what this unit holds, as of its HELLO
         self.sessions_started += 1
         if old is not None:  # push results the store could not take yet: carried over, not lost
             self.session.unrecorded.extend(old.unrecorded)

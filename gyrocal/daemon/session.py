@@ -63,6 +63,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
+from gyrocal.daemon.capabilities import PROTOCOL, Projection, UnitCapabilities, project
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
 from gyrocal.daemon.session_recovery import RecoveryMixin
@@ -139,8 +140,13 @@ class Session(RecoveryMixin):
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
         now: float, rate_hz: float, warm_started_from: int | None = None,
+        caps: UnitCapabilities = PROTOCOL,
     ) -> None:
         self.cfg = cfg
+        self.caps = caps  # what the unit can hold: a set is projected onto it before a push
+        self.reboot_needed: dict[str, Any] | None = None  # an acked set the unit applies after a reboot
+        self._projection: Projection | None = None  # the split of the set being validated/pushed
+        self.host_remainder: dict[str, Any] | None = None  # of the last acked set, for status
         self.hello = hello
         self.learner = learner
         self.store = store
@@ -273,9 +279,7 @@ class Session(RecoveryMixin):
 
     def predict(self) -> dict[str, Any]:
         """The learner's predicted drift [deg/s] left by the current set (see learner.py)."""
-        applied = None
-        if self.applied is not None and tuple(self.applied.names) == tuple(self.names):
-            applied = self.applied.coeffs_dps
+        applied = self._applied_coeffs()
         poses = np.array(self.poses) if self.poses else np.zeros((0, len(self.names)))
         p = self.learner.prediction(poses, self._sphere_phi(), applied, self.holdout.blocks)
         # the unit is judged at poses the daemon may not have seen yet: what a set is predicted to
@@ -402,7 +406,18 @@ class Session(RecoveryMixin):
 
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
-        coeffs = self.learner.coefficients
+        # what the unit can hold (capabilities.py): validated, recorded and pushed; the rest is reported
+        held = self.caps.held_subset(self.names)
+        if held is None:
+            self.state = State.COLLECTING
+            self.reason = (f"validated set not pushed: the unit ({self.caps.kind}) holds none of the term "
+                           f"sets {self.caps.as_dict()['term_sets']} within {self.names}")
+            self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            log.warning("unit %s: %s", self.hello.serial, self.reason)
+            return
+        poses = np.array(self.poses) if self.poses else np.zeros((0, len(self.names)))
+        self._projection = proj = project(self.names, self.learner.coefficients, held, poses)
+        coeffs = proj.embedded_dps
         blocks = self.holdout if blocks is None else blocks
         rms_old = blocks.rms_with(self._applied_coeffs()) if self._applied_coeffs() is not None \
             else blocks.rms_out()
@@ -435,7 +450,7 @@ class Session(RecoveryMixin):
             self.state = State.COLLECTING
             self.reason = f"v{self._retry['version']} is pushed again first (round {self._retry['round']})"
             return
-        why = check_set(self.names, coeffs)
+        why = check_set(list(proj.held_names), proj.held_dps)
         if why is not None:
             self.state, self.reason = State.COLLECTING, f"validated set not pushed: {why}"
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
@@ -450,7 +465,7 @@ class Session(RecoveryMixin):
         self._push_prediction["noise_inflation"] = np.round(infl, 3).tolist()
         self._push_prediction["stage"] = stage
         try:
-            record = self._record(coeffs)
+            record = self._record(proj)
         except Exception as err:  # never push a set the store does not know
             self.store_error = str(err)
             self._store_retry_at = now + self.STORE_RETRY_S
@@ -467,13 +482,17 @@ class Session(RecoveryMixin):
             block_var = self.learner.residual_var() / max(self.acc.size, 1)
             left = np.nan_to_num(self.prediction.get("left_sphere", np.zeros(3)), posinf=0.0)
             self.validated_rms = np.sqrt(rms_new**2 + block_var + left**2)
-        self.start_push(record["version"], self.names, coeffs, now)
+        self.start_push(record["version"], list(proj.held_names), proj.held_dps, now)
 
-    def _record(self, coeffs: np.ndarray) -> dict[str, Any]:
+    def _record(self, proj: Projection) -> dict[str, Any]:
+        """The record of the set the unit will hold; the learnt rest (if any) in ``host_remainder``."""
+        idx = [self.names.index(n) for n in proj.held_names]
         rec = CalibrationRecord(
-            serial=self.hello.serial, version=0, terms=list(self.names),
-            coefficients_dps=coeffs.tolist(),
-            uncertainty_dps=self.learner.uncertainty,  # the store writes undetermined (inf) as null
+            serial=self.hello.serial, version=0, terms=list(proj.held_names),
+            coefficients_dps=proj.held_dps.tolist(),
+            # the store writes undetermined (inf) as null
+            uncertainty_dps=self.learner.uncertainty[:, idx],
+            host_remainder={} if proj.exact else proj.record(self.names),
             identifiable=self.learner.identifiable(),
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
@@ -500,6 +519,8 @@ class Session(RecoveryMixin):
             return f"v{self.push.write.version} is being pushed"
         try:
             why = check_set(list(names), coeffs)
+            if why is None and not self.caps.holds(list(names)):
+                why = f"the unit ({self.caps.kind}) cannot hold the terms {list(names)}"
             if why is None:
                 coeffs = np.asarray(coeffs, dtype=np.float64)
                 write = CoeffWrite(version, terms_id(names), tuple(tuple(map(float, r)) for r in coeffs))
@@ -535,8 +556,17 @@ class Session(RecoveryMixin):
         if self._push_prediction:
             self.last_push["predicted_drift_dph"] = self._push_prediction
             self._push_prediction = {}
+        if result.status == "acked" and self.caps.reboot_required:
+            self.last_push["reboot_required"] = True  # in the store record of the push too
         self._store_push(version, dict(self.last_push), now)
         if result.status == "acked":
+            proj, self._projection = self._projection, None
+            self.host_remainder = None if proj is None or proj.exact else proj.record(self.names)
+            if self.caps.reboot_required:  # PX4 with TC_G_ENABLE off at boot (docs/mavlink.md)
+                self.reboot_needed = {"version": version, "why": f"the unit ({self.caps.kind}) applies "
+                                      "a pushed set only after its next reboot"}
+                log.warning("unit %s: v%d is held; it takes effect at the unit's next reboot",
+                            self.hello.serial, version)
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
             self.monitor.clear()
@@ -573,11 +603,16 @@ class Session(RecoveryMixin):
         self.alarm = alarm
 
     def _applied_coeffs(self) -> np.ndarray | None:
-        """The unit's set in this session's term order, or None if it holds other terms (or none)."""
+        """The unit's set in this session's term order (a held subset is padded with zeros), or None if
+        it holds terms this session does not learn (or none)."""
         a = self.applied
-        if a is None or tuple(a.names) != tuple(self.names) or a.coeffs_dps.shape != (3, len(self.names)):
+        if a is None or not set(a.names) <= set(self.names) or a.coeffs_dps.shape != (3, len(a.names)):
             return None
-        return a.coeffs_dps
+        if tuple(a.names) == tuple(self.names):
+            return a.coeffs_dps
+        out = np.zeros((3, len(self.names)))
+        out[:, [self.names.index(n) for n in a.names]] = a.coeffs_dps
+        return out
 
     # -- status -------------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -610,6 +645,9 @@ class Session(RecoveryMixin):
                        "retry": None if self._retry is None else {"version": self._retry["version"],
                                                                    "round": self._retry["round"]}},
             "poses_seen": len(self.poses),
+            "unit_caps": self.caps.as_dict(),
+            "reboot_needed": self.reboot_needed,
+            "host_remainder": self.host_remainder,
             "predicted_drift_dph": {k: (_xyz_dph(v) if k in PREDICTED_KEYS else v)
                                     for k, v in self.prediction.items() if k != "gate"},
         }

@@ -82,6 +82,10 @@ class CalibrationRecord:
     created_utc: str = field(default_factory=utc_now)
     session: dict = field(default_factory=dict)  # boot_count, fw
     push: dict = field(default_factory=default_push)  # status, attempts, acked_crc, readback_ok, time
+    host_remainder: dict = field(default_factory=dict)
+    """Empty, or the part of the learnt set the unit cannot hold (daemon/capabilities.py): ``terms``,
+    ``coefficients_dps`` (3 rows) that a host consumer subtracts from the unit's output as the unit
+    does with its own set, ``held_terms``, and ``drift_left_poses_dph`` (x, y, z) it would leave."""
     extra: dict = field(default_factory=dict)  # fields this version of gyrocal does not know
 
     def validate(self) -> None:
@@ -105,7 +109,7 @@ class CalibrationRecord:
                         continue
                     if not _is_number(v) or not math.isfinite(v):
                         raise ValueError(f"{name}[{axis}] holds {v!r}; every value must be a finite number")
-        for name in ("identifiable", "stats", "session", "push", "extra"):
+        for name in ("identifiable", "stats", "session", "push", "host_remainder", "extra"):
             if not isinstance(getattr(self, name), dict):
                 raise ValueError(f"{name} must be a dict")
         _check_push_status(self.push.get("status"))
@@ -143,6 +147,8 @@ class CalibrationRecord:
         """The JSON form: known fields at top level, unknown ones merged back in unchanged."""
         d = _jsonable(asdict(self))
         extra = d.pop("extra")
+        if not d["host_remainder"]:  # optional: a record the unit holds whole looks as it always did
+            del d["host_remainder"]
         return {"format": FORMAT, **extra, **d}
 
     @classmethod

@@ -17,7 +17,7 @@ that equation holds everywhere. Samples during a push are dropped (``push_gap_sa
 compensation changes under them parameter by parameter.
 
 Threads: everything MAVLink happens on the reader thread (``_receive``); ``send`` only queues the
-daemon's request. Capabilities: ``term_sets`` and ``reboot_required``.
+daemon's request. Capabilities: ``capabilities`` (``term_sets`` and ``reboot_required``).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.daemon.capabilities import UnitCapabilities
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.drivers.base import ControlCallback, EventCallback, Link
 from gyrocal.errors import LinkError
@@ -111,7 +112,15 @@ class MavlinkLink(UnitRequests, Link):
         self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
         self._reset_boot()
 
-    # ---- capabilities (the engine's use of them comes in phase 2) -------------------------------
+    # ---- capabilities (gyrocal/daemon/capabilities.py: the daemon projects its set onto them) ----
+    @property
+    def capabilities(self) -> UnitCapabilities:
+        """What this autopilot holds (a polynomial in temperature per axis) and whether a push waits
+        for a reboot, as known now (read by the daemon at each switch-on's HELLO)."""
+        name = self.profile.name if self.profile is not None else "autopilot"
+        return UnitCapabilities(f"mavlink {name}", tuple(self.term_sets.values()), len(TEMP_POLY3_TERMS),
+                                self.reboot_required)
+
     @property
     def term_sets(self) -> dict[int, tuple[str, ...]]:
         """Term sets this unit can hold: one cubic polynomial in temperature per axis, no gravity terms."""

@@ -140,7 +140,7 @@ class UnitRequests:
             rep = self._reported(self._params)
             out.append(CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps)))
             if self.reboot_required:
-                log.warning(
+                log.info(  # the daemon's session logs the one WARNING (and status says so)
                     "mavlink %s: v%d is stored; %s applies it only after a reboot",
                     self.url,
                     write.version,
