@@ -115,9 +115,11 @@ def _check_push(unit: IndepUnit, daemon: Daemon, boot: int, held: dict | None = 
     """The push is acked by the unit, cuts its true drift >= 10x per axis, and store == unit.
 
     ``held``: the drift [deg/s] per axis that the set held from the last switch-on left. A bias-only
-    push after a power cycle keeps that set's gravity terms, so it cannot beat them: it must cut 10x
-    or come within 2x of what that set achieved (a switch-on whose new bias partly cancels the
-    gravity drift has little drift to cut).
+    push after a power cycle keeps that set's gravity terms, so it cannot beat them: its bias, from
+    the first still second at one pose, also takes in that set's error at that pose (about sqrt(2)
+    times its RMS over the poses) and one second of noise. It must cut 10x or come within 3x of
+    what the held set achieved (a switch-on whose new bias partly cancels the gravity drift has
+    little drift to cut). benchmarks/bench_indep.py --cycle measured at most 3.02x over 90 axes.
     """
     ok = wait_for(lambda: daemon.proc.poll() is not None or _acked(unit, daemon, boot), timeout_s=WAIT_S,
                   poll_s=1.0)
@@ -129,7 +131,7 @@ def _check_push(unit: IndepUnit, daemon: Daemon, boot: int, held: dict | None = 
     ack = [a for a in truth["acks"] if a["boot"] == boot][-1]
     for axis in "xyz":
         before, after = ack["rms_before"][axis], ack["rms_after"][axis]
-        if held is not None and after <= 2 * held[axis]:
+        if held is not None and after <= 3 * held[axis]:
             continue
         assert after * 10 <= before, f"axis {axis}: drift {before:.3g} -> {after:.3g} deg/s (< 10x)"
     assert st["applied"] == {"version": truth["applied"]["version"], "terms_id": truth["applied"]["terms_id"]}
