@@ -102,3 +102,33 @@ def test_temperature_and_its_rate_together_are_both_named_not_a_random_walk() ->
     assert "random_walk" not in found
     assert found.get("temperature") == h.axes["temperature"]
     assert found.get("temperature_rate") == h.axes["temperature_rate"]
+
+
+def test_noise_causes_map_onto_the_truth_model_so_sim_reproduces_the_allan_curve() -> None:
+    """coloured_noise and bias_instability findings -> truth model (gm, flicker): the virtual unit's
+    still output has the fitted model's Allan deviation, within 0.1 decade at every octave tau."""
+    from gyrocal.analysis.extend import truth_from_result
+    from gyrocal.analysis.noisemodel import octave_m, overlapping_avar
+    from gyrocal.sim.schedule import still
+    from gyrocal.sim.truth import SessionStream
+
+    rate = 50.0
+    m = NoiseModel(rate, 0.01**2, [(1 / rate, 0.012**2), (2 / rate, 0.008**2), (5.12, 0.002**2),
+                                   (81.92, 0.0015**2)], 0.0)
+    axes = ["x", "y", "z"]
+    findings = [
+        {"cause": "coloured_noise", "axes": axes, "params": {
+            "gauss_markov": {a: [{"tau_s": t, "sd_dps": np.sqrt(v)} for t, v in m.fast] for a in axes},
+            "white_dps": {a: np.sqrt(m.white_var) for a in axes}}},
+        {"cause": "bias_instability", "axes": axes, "params": {
+            "flicker_bank": {a: [{"tau_s": t, "sd_dps": np.sqrt(v)} for t, v in m.slow] for a in axes}}},
+    ]
+    truth = truth_from_result({"findings": findings, "noise_dps": {a: m.sample_sd for a in axes},
+                               "samples": {"rate_hz": rate}})
+    assert truth.noise_dps == 0.01 and np.all(truth.effects.gm_dps > 0)
+    assert np.all(truth.effects.bias_instability_dps > 0)
+    n = int(1200 * rate)
+    w = SessionStream(truth, still(), rate, 3, 0).chunk(n)["wx"]
+    mm = octave_m(n, 0.1).astype(float)
+    dec = np.log10(np.sqrt(overlapping_avar(w, mm) / m.avar(mm)))
+    assert np.max(np.abs(dec)) < 0.1, dec
