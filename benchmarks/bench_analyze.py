@@ -114,8 +114,8 @@ def _long(hours: float, out: str | None) -> int:
         r = _analyze(p)
         sec, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    # cpu_seconds (user + system of the analysis alone) is the figure a loaded machine cannot spoil:
-    # on an idle one the wall time is about that (numpy/OpenBLAS run one thread here)
+    # cpu_seconds (user + system of the analysis alone) is the figure a loaded machine spoils least: the
+    # analysis is single-threaded apart from BLAS, so on an idle machine its wall time is about that
     fig = {"hours": hours, "rate_hz": 100, "samples": r["samples"]["total"], "seconds": round(sec, 1),
            "cpu_seconds": round(cpu, 1), "peak_rss_mb": round(peak_mb),
            "findings": [f["cause"] for f in r["findings"]]}
