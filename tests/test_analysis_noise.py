@@ -148,3 +148,19 @@ def test_a_wandering_line_is_narrow_band_noise_whose_allan_shape_matches_its_sim
     with_line = fit_noise(x, rate, lines=((31.4, 0.05),))
     assert np.sqrt(with_line.lines[0][2]) == pytest.approx(0.06, rel=0.1)
     assert fit_noise(x, rate).misfit > 100 * max(with_line.misfit, 1.0)
+
+
+def test_a_wandering_line_in_a_log_is_named_coloured_noise_with_its_frequency_not_periodic() -> None:
+    """A 7.3 Hz resonance (half width 0.1 Hz, 1 sigma) on z of a null tumble log: the analysis
+    models it as narrow-band noise (coloured_noise on z, its centre within 0.05 Hz), not a sinusoid."""
+    cols, _ = generate(5, causes=[])
+    line = NoiseModel(25.0, 0.0, [], 0.0, lines=[(7.3, 0.1, 0.002**2)])
+    cols["wz"] = cols["wz"] + line.simulate(cols["t"].size, np.random.default_rng(5))
+    res = analyze(LogData(cols, {}, [], "line")).result
+    found = {f["cause"]: f for f in res["findings"]}
+    assert not set(found) & REGRESSION
+    assert found["coloured_noise"]["axes"] == ["z"]
+    (f0, _, sd), = [(q["frequency_hz"], q["half_width_hz"], q["sd_dps"])
+                    for q in found["coloured_noise"]["params"]["lines"]["z"]]
+    assert f0 == pytest.approx(7.3, abs=0.05) and sd == pytest.approx(0.002, rel=0.3)
+    assert res["fidelity"]["after"]["z"] < res["fidelity"]["without_colour"]["z"]

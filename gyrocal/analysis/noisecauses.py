@@ -21,9 +21,11 @@ from gyrocal.analysis.segments import AXES
 
 NEED_MIN = 30.0
 GAIN_MIN = 0.02
-LINE_RATIO = 50.0
-"""A narrow-band line: the residual spectrum's peak bin over the median of its neighbours (+-2 Hz,
-the line's own +-0.25 Hz left out). White noise gives about 14 for the largest of 20,000 bins."""
+LINE_RATIO = 8.0
+"""A narrow-band line: the residual spectrum, smoothed over ``LINE_SMOOTH_HZ``, peaks at this many times
+the median of each of its flanks (0.25-2 Hz either side; the higher flank counts, so a slope is not a
+line). White noise: the largest smoothed bin of thousands is about 2x its neighbours."""
+LINE_SMOOTH_HZ = 0.05
 LINE_MIN_HZ = 1.0
 """Lines below this are left to the slow states (flicker, walk) and the periodic cause."""
 TEST = ("Allan-variance fit of the error model with and without the component (weighted misfit "
@@ -84,27 +86,31 @@ def find_lines(prob: Problem, resid: np.ndarray) -> list[tuple[tuple[float, floa
     Why: a resonance whose frequency wanders (sunsided z, 31.4 Hz, 30 % of the variance) is not one
     sinusoid, so the periodic cause explains too little of it; as noise it is a second-order
     Gauss-Markov line (``NoiseModel.lines``) that the simulation must reproduce. The centre and the
-    half width are the mean and the SD of the excess power within 0.25 Hz of the peak.
+    half width are the mean and the SD of the power above the flank level within 0.25 Hz of the peak.
     """
     grids = gridded(prob, resid, np.ones(prob.n, dtype=bool))
     if not grids:
         return [(), (), ()]
     f, p = spectrum(prob, grids)
     df = float(f[1] - f[0])
+    w = max(1, int(round(LINE_SMOOTH_HZ / df)))
+    sm = np.apply_along_axis(lambda c: np.convolve(c, np.ones(w) / w, mode="same"), 0, p)
     band = np.flatnonzero((f >= LINE_MIN_HZ) & (f <= 0.45 * prob.rate_hz))
     out: list[tuple[tuple[float, float], ...]] = []
     for k in range(resid.shape[1]):
         if band.size < 100:
             out.append(())
             continue
-        j = int(band[np.argmax(p[band, k])])
-        near = (np.abs(f - f[j]) <= 2.0) & (np.abs(f - f[j]) > 0.25)
-        med = float(np.median(p[near, k])) if near.any() else 0.0
-        if med <= 0 or p[j, k] / med < LINE_RATIO:
+        j = int(band[np.argmax(sm[band, k])])
+        d = f - f[j]
+        flanks = [sm[(d >= -2.0) & (d <= -0.25) & (f > 0), k], sm[(d >= 0.25) & (d <= 2.0), k]]
+        flanks = [x for x in flanks if x.size >= 10]
+        ref = max((float(np.median(x)) for x in flanks), default=0.0)
+        if ref <= 0 or sm[j, k] / ref < LINE_RATIO:
             out.append(())
             continue
-        win = np.abs(f - f[j]) <= 0.25
-        ex = np.maximum(p[win, k] - med, 0.0)
+        win = np.abs(d) <= 0.25
+        ex = np.maximum(p[win, k] - ref, 0.0)
         c = float(np.sum(f[win] * ex) / np.sum(ex))
         hw = float(np.sqrt(np.sum((f[win] - c) ** 2 * ex) / np.sum(ex)))
         out.append(((round(c, 4), round(max(hw, df), 4)),))
