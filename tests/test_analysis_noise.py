@@ -164,3 +164,25 @@ def test_a_wandering_line_in_a_log_is_named_coloured_noise_with_its_frequency_no
                     for q in found["coloured_noise"]["params"]["lines"]["z"]]
     assert f0 == pytest.approx(7.3, abs=0.05) and sd == pytest.approx(0.002, rel=0.3)
     assert res["fidelity"]["after"]["z"] < res["fidelity"]["without_colour"]["z"]
+
+
+def test_gls_gram_by_one_segmented_sweep_equals_the_full_solve() -> None:
+    """``gram`` sweeps U'^-1 once, in row segments coupled by the last d rows: the same x'V^-1x."""
+    from gyrocal.analysis import gls
+
+    m = NoiseModel(10.0, 0.01, [(0.1, 0.02), (2.0, 0.005), (20.0, 0.003)], 1e-4)
+    t = np.arange(400) / 10.0
+    t[200:] += 3.0
+    sess = (np.arange(400) >= 300).astype(float)
+    w = np.ones(400)
+    w[10:15] = 0.0
+    g = gls.StateSpaceGLS(m, t, sess, w)
+    x = np.random.default_rng(2).normal(size=(400, 5))
+    ref = x.T @ g.vinv(x)
+    old = gls.SEGMENT_ROWS
+    try:
+        for seg in (7, 64, 1 << 18):  # 7 -> 6 rows: a segment boundary inside every other sample
+            gls.SEGMENT_ROWS = seg
+            assert np.allclose(g.gram(x), ref, rtol=1e-10, atol=1e-12)
+    finally:
+        gls.SEGMENT_ROWS = old
