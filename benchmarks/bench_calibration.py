@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gyrocal.daemon.demo import predicted_left  # noqa: E402
 
 DPH = 3600.0
 AXES = "xyz"
@@ -58,7 +59,7 @@ def _summary(before: dict[str, float], pushes: list[dict[str, Any]], alarms: int
         return out
     first = pushes[0]
     best = min(pushes, key=lambda p: max(p["drift"][a] for a in AXES))
-    pred = (first["push"].get("predicted_drift_dph") or {}).get("left_poses") or {}
+    pred = predicted_left(first["push"].get("predicted_drift_dph")) or {}
     out.update({
         "t_first_push_s": round(first["t"], 2),
         "status_first": first["push"].get("status"),

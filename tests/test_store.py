@@ -259,3 +259,12 @@ def test_numpy_and_nan_in_free_form_stats_do_not_block_the_write(tmp_path: Path)
     back = CalibrationStore(tmp_path).get(55, 1)
     assert back.stats["rms_dps"][1] is None and back.stats["n"] == 7
     assert back.stats["validation"]["ratio"] is None and back.stats["path"] == str(tmp_path)
+
+
+def test_assigned_version_never_goes_below_the_floor_the_unit_holds(tmp_path: Path) -> None:
+    """A unit holding factory v7 that this store never wrote gets v8 next, then v9, not v1."""
+    store = CalibrationStore(tmp_path)
+    assert store.add(make_record(), min_version=8).version == 8
+    assert store.add(make_record(seed=1), min_version=8).version == 9
+    assert store.add(make_record(seed=2)).version == 10
+    assert [r.version for r in CalibrationStore(tmp_path).history(1234)] == [8, 9, 10]

@@ -92,7 +92,8 @@ class CommandsMixin:
             rec = self.store.add(CalibrationRecord(
                 serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
                 uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
-                session={"boot_count": s.hello.boot_count}, push={"status": "pending"}))
+                session={"boot_count": s.hello.boot_count}, push={"status": "pending"}),
+                min_version=s.version_floor())
         except Exception as err:  # never a unit set the store does not know: refuse the push
             return {"ok": False, "error": f"store unavailable ({err}); nothing was pushed"}
         return self._started(s.start_push(rec.version, terms, coeffs, now), rec.version)

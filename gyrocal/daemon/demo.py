@@ -31,6 +31,13 @@ log = logging.getLogger("gyrocal.demo")
 DPH = 3600.0
 
 
+def predicted_left(pred: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The drift a pushed set was predicted to leave [deg/h]: the gate's figure (poses seen and
+    sphere, whichever is worse), or the poses-seen one for a record written before it existed."""
+    pred = pred or {}
+    return pred.get("left") or pred.get("left_poses")
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--can", action="store_true", help="use a python-can udp_multicast bus, not a pty")
     p.add_argument("--seed", type=int, default=1, help="the virtual unit's seed (its truth and bias)")
@@ -108,7 +115,7 @@ def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float, grade: str 
         "readback_ok": bool(push.get("readback_ok")), "elapsed_s": round(elapsed, 1),
         "unit_serial": (status.get("unit") or {}).get("serial"), "state": status.get("state"),
         "reason": status.get("reason"), "samples": status.get("samples"), "grade": grade,
-        "predicted_drift_after": _dps((push.get("predicted_drift_dph") or {}).get("left_poses")),
+        "predicted_drift_after": _dps(predicted_left(push.get("predicted_drift_dph"))),
         "first_push_s": push_at.get("t"),
     }
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import re
 import signal
 import threading
 import time
@@ -57,6 +58,8 @@ from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import Hello, HelloRequest
 
 log = logging.getLogger("gyrocal.engine")
+_COUNTS = re.compile(r"\d+(\.\d+)?")
+"""Numbers in a status line: a line that differs only in them is the same kind of news."""
 
 SILENT_AFTER_S = 2.0
 """No sample for this long [s] on a connected link: the unit is silent (vanished, stalled, or a
@@ -81,6 +84,9 @@ class Reply:
 
 class Engine(CommandsMixin):
     """Joins one link to sessions, the store, the control socket and systemd."""
+
+    HELLO_ASKS_BEFORE_ADVICE = 3
+    """Unanswered HELLO_REQUESTs (2 s apart) before WAIT_HELLO advises a power cycle."""
 
     def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -113,6 +119,8 @@ class Engine(CommandsMixin):
         self._link_state = "not opened"
         self._pending: list[tuple[Any, ...]] = []  # inbox items not handled yet, in arrival order
         self._last_status_line = ""
+        self._last_logged_kind = ""
+        self._hello_asks = 0  # HELLO_REQUESTs sent since the last HELLO
         self._next_hello_request = 0.0
         self._next_publish = 0.0
         self._seq_hist: deque[tuple[int, np.ndarray]] = deque(maxlen=8)
@@ -303,6 +311,7 @@ class Engine(CommandsMixin):
     def _ask_hello(self, now: float) -> None:
         """Ask the unit to announce itself (HELLO_REQUEST): it switched on before we listened."""
         self._next_hello_request = now + 2.0
+        self._hello_asks += 1
         try:
             self.link.send(HelloRequest())
         except Exception as err:  # the link may be down; the reader thread reconnects
@@ -311,10 +320,12 @@ class Engine(CommandsMixin):
     def _on_message(self, msg: Any, now: float, last_seq: int | None = None) -> None:
         """A message from the unit; ``last_seq`` is the seq of the sample just before it on the wire."""
         if isinstance(msg, Hello):
+            self._hello_asks = 0
             s = self.session
             if s is not None and (s.hello.serial, s.hello.boot_count) == (msg.serial, msg.boot_count):
-                log.info("HELLO from unit %d again (boot %d): same switch-on, session continues",
-                         msg.serial, msg.boot_count)
+                # an answer to a HELLO_REQUEST, or the switch-on HELLO still in the port's buffer
+                log.debug("HELLO from unit %d again (boot %d): same switch-on, session continues",
+                          msg.serial, msg.boot_count)
                 return
             self.last_hello = msg
             if (s is not None and s.hello.serial == msg.serial and self._seq_session_at is not None
@@ -435,9 +446,15 @@ class Engine(CommandsMixin):
         connected = bool(link_stats.get("connected"))
         age = None if self._last_sample_at is None else now - self._last_sample_at
         if self.session is None:
-            waiting = ("waiting for the unit's HELLO: no frame received yet" if not link_stats.get("frames")
-                       else f"waiting for the unit's HELLO: {self.samples_before_hello} samples received "
-                            "without one; power-cycle the unit or check its firmware")
+            if not link_stats.get("frames"):
+                waiting = "waiting for the unit's HELLO: no frame received yet"
+            elif self._hello_asks < self.HELLO_ASKS_BEFORE_ADVICE:
+                waiting = (f"waiting for the unit's HELLO: {self.samples_before_hello} samples received "
+                           f"without one; asked for it (HELLO_REQUEST sent {self._hello_asks} time(s))")
+            else:
+                waiting = (f"waiting for the unit's HELLO: {self.samples_before_hello} samples received "
+                           f"without one and {self._hello_asks} HELLO_REQUESTs unanswered; power-cycle "
+                           "the unit or check its firmware")
             status = {"state": "WAIT_HELLO", "reason": waiting}
         else:
             status = self.session.status()
@@ -476,4 +493,9 @@ class Engine(CommandsMixin):
         if line != self._last_status_line:
             self._last_status_line = line
             self.notifier.status(line)
-            log.info("%s", line)
+            # the journal gets a line when the state or the kind of reason changes, not at every
+            # count in it ("only 215 of 800 samples", "rank 3 < 9"): systemd's STATUS= has every one
+            kind = _COUNTS.sub("#", line)
+            if kind != self._last_logged_kind:
+                self._last_logged_kind = kind
+                log.info("%s", line)

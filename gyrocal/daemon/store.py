@@ -371,11 +371,13 @@ class CalibrationStore:
 
     # --- writing -----------------------------------------------------------------------------------
 
-    def add(self, record: CalibrationRecord) -> CalibrationRecord:
+    def add(self, record: CalibrationRecord, min_version: int = 0) -> CalibrationRecord:
         """Write a new version durably and return it (with its version assigned if it was 0).
 
         Refuses to overwrite an existing version: history is append-only; push results change
-        through update_push.
+        through update_push. ``min_version`` is a floor for an assigned version: the unit may hold a
+        set this store never wrote (a factory set, another host's), and a new set must not go back
+        below it, or two different sets would share a version on the unit's side.
         """
         record.normalise()
         record.validate()
@@ -384,7 +386,7 @@ class CalibrationStore:
             recs = self._load(serial)
             auto = record.version == 0
             if auto:
-                record.version = self._max_seen.get(serial, 0) + 1
+                record.version = max(self._max_seen.get(serial, 0) + 1, int(min_version))
             elif record.version in recs or record.version <= 0:
                 raise ValueError(f"unit {serial} already has version {record.version}; add with version=0")
             udir = self._unit_dir(serial)

@@ -9,6 +9,7 @@ samples, one HELLO, one transfer in each direction.
 
 from __future__ import annotations
 
+import binascii
 import struct
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -257,16 +258,19 @@ class CanDecoder:
         if t is None or t.version != raw["CAL_VERSION"] or not t.complete():
             self.stats.incomplete += 1
             return None, NakReason.INCOMPLETE
-        flat = struct.unpack(f"<{3 * t.n}d", struct.pack(f"<{6 * t.n}I", *t.words))
+        body = struct.pack(f"<{6 * t.n}I", *t.words)
+        # the CRC first, over the bytes as they came (doc sec. 6 order): a corrupt transfer is
+        # BAD_CRC whatever its floats decode to; only an intact one can be judged on its values
+        if binascii.crc32(struct.pack("<IHB", t.version, t.terms_id, t.n) + body) != raw["CRC"]:
+            self.stats.crc_errors += 1
+            return None, NakReason.BAD_CRC
+        flat = struct.unpack(f"<{3 * t.n}d", body)
         rows = (flat[: t.n], flat[t.n : 2 * t.n], flat[2 * t.n :])
         try:
-            crc = coeff_set_crc(t.version, t.terms_id, rows)
+            coeff_set_crc(t.version, t.terms_id, rows)
         except ProtocolError:  # NaN/Inf under a valid CRC: counted and dropped
             self.stats.bad_values += 1
             return None, NakReason.OUT_OF_RANGE
-        if crc != raw["CRC"]:
-            self.stats.crc_errors += 1
-            return None, NakReason.BAD_CRC
         return CoeffWrite(t.version, t.terms_id, rows), 0
 
     def _on_coeff_begin(self, raw: dict[str, int]) -> list[object]:
