@@ -43,6 +43,21 @@ def logs() -> dict:
     return out
 
 
+def worst_tau(fid: dict) -> dict:
+    """Per axis, the largest |log10(measured / simulated after)| at any tau of any session [decades]
+    (the fidelity figure itself is the RMS over taus of the worst session)."""
+    out = {}
+    for a in "xyz":
+        worst = 0.0
+        for row in fid["sessions"]:
+            m, s = np.array(row["measured"][a]), np.array(row["simulated_after"][a])
+            ok = (m > 0) & (s > 0)
+            if ok.any():
+                worst = max(worst, float(np.max(np.abs(np.log10(m[ok] / s[ok])))))
+        out[a] = round(worst, 3)
+    return out
+
+
 def summary(r: dict) -> dict:
     return {
         "findings": [
@@ -65,6 +80,7 @@ def summary(r: dict) -> dict:
         "noise_dps_first_differences": {a: round(v, 4) for a, v in r["noise_dps_first_differences"].items()},
         "fidelity_before": r["fidelity"]["before"],
         "fidelity_after": r["fidelity"]["after"],
+        "fidelity_after_worst_tau": worst_tau(r["fidelity"]),
         "retimed": bool(r["samples"]["retimed"]),
         "tau_s": r["tau_s"],
         "psd_peaks": r["diagnostics"]["psd_peaks"],
@@ -105,6 +121,7 @@ def main() -> None:
                         "findings",
                         "fidelity_before",
                         "fidelity_after",
+                        "fidelity_after_worst_tau",
                         "noise_dps",
                         "noise_dps_first_differences",
                         "after_removal",

@@ -26,7 +26,7 @@ from gyrocal.analysis.causes import (
 from gyrocal.analysis.fidelity import fidelity_block
 from gyrocal.analysis.holdout import ALPHA, FAMILY_ALPHA, MIN_FRACTION, heldout_residual, rms_tau
 from gyrocal.analysis.lrtest import AxisLR, build_axis_lr
-from gyrocal.analysis.noisecauses import noise_findings
+from gyrocal.analysis.noisecauses import find_lines, noise_findings
 from gyrocal.analysis.noisemodel import NoiseModel, fit_noise
 from gyrocal.analysis.segments import AXES, usable_samples
 from gyrocal.analysis.timestamps import describe, retime
@@ -124,7 +124,8 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
             contrib.setdefault("random_walk", np.zeros_like(prob.y))[:, k] = resid_reg[:, k] - resid_ext[:, k]
     # the simulation's error model: the point estimate on the extended regressions' residual (the
     # test's models fit each Allan octave's upper limit, which is right for a test, not for a twin)
-    models = {a: fit_noise(resid_reg[:, k], prob.rate_hz) for k, a in enumerate(AXES)}
+    lines = find_lines(prob, resid_reg)  # narrow-band noise: a wandering resonance (sunsided z)
+    models = {a: fit_noise(resid_reg[:, k], prob.rate_hz, lines=lines[k]) for k, a in enumerate(AXES)}
     findings = _findings(prob, per_axis, by_name, coefs, resid_base, models)
     ext_terms = list(SEED000_TERMS)
     for c in cands:

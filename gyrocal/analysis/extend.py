@@ -47,17 +47,24 @@ def _plain(x):
     return x
 
 
-def effects_from_findings(findings: list[dict]) -> Effects:
+def effects_from_findings(findings: list[dict], rate_hz: float | None = None) -> Effects:
     """The truth-model Effects that reproduce the findings, so the re-run simulation matches.
 
     Warm-up, temperature rate, periodic, scale factor and random walk map one to one. The temperature
-    finding maps onto the slope and curvature at its reference temperature [deg/s per degC].
+    finding maps onto the slope and curvature at its reference temperature [deg/s per degC]. The noise
+    causes map onto the truth model's noise: ``coloured_noise`` onto one Gauss-Markov rate
+    (``gm_dps``, ``gm_tau_s``; see ``colour_to_truth``), ``bias_instability`` (or, without it, the
+    flicker bank a ``random_walk`` finding carries) onto the flicker floor (``bias_instability_dps``,
+    ``flicker_band_s``; see ``flicker_to_truth``). ``rate_hz`` [Hz] is the log's sample rate (the
+    colour's correlation times are a few samples, so its discretisation matters); None treats the
+    colour in continuous time.
     """
     e = Effects()
 
     def vec(d: dict) -> np.ndarray:
         return np.array([float(d.get(a, 0.0)) for a in AXES])
 
+    flicker: dict | None = None
     for f in findings:
         p = f["params"]
         if f["cause"] == "temperature":
@@ -74,11 +81,97 @@ def effects_from_findings(findings: list[dict]) -> Effects:
             e.scale_factor = vec(p["scale_factor"])
         elif f["cause"] == "random_walk":
             e.random_walk_dps_per_sqrt_s = vec(p["dps_per_sqrt_s"])
+            if flicker is None and p.get("flicker_bank"):
+                flicker = {a: p["flicker_bank"][a] for a in f["axes"] if a in p["flicker_bank"]}
+        elif f["cause"] == "coloured_noise":
+            gm, e.gm_tau_s = colour_to_truth(p["gauss_markov"], rate_hz)
+            e.gm_dps = vec(gm)
+        elif f["cause"] == "bias_instability":
+            flicker = p["flicker_bank"]
+    if flicker:
+        b, band = flicker_to_truth(flicker)
+        if band is not None:
+            e.bias_instability_dps, e.flicker_band_s = vec(b), band
     return e
 
 
+def colour_to_truth(members: dict[str, list[dict]], rate_hz: float | None = None) -> tuple[dict, float]:
+    """One Gauss-Markov rate per axis with a shared correlation time, from each axis' fitted colour.
+
+    The truth model has one colour time constant for all axes. Per axis the fitted members (tau_s,
+    sd_dps) give a per-sample variance V and a low-frequency (ARW) variance L = sum v (1 + phi) /
+    (1 - phi); one first-order process with (1 + phi) / (1 - phi) = sum L / sum V matches both on
+    average, and each axis' SD is then set so that its L (the long-tau Allan level) is exact.
+    Returns ({axis: sd [deg/s]}, tau [s]).
+    """
+    def phi(t: float) -> float:
+        return float(np.exp(-1.0 / (rate_hz * t))) if rate_hz else 0.0
+
+    def lf(t: float) -> float:  # low-frequency variance per unit variance
+        if rate_hz:
+            return (1 + phi(t)) / (1 - phi(t))
+        return 2.0 * t  # continuous time: PSD(0) = 2 v T, in units of one second
+    v_tot, l_axis = 0.0, {}
+    for a, ms in members.items():
+        v = sum(float(m["sd_dps"]) ** 2 for m in ms)
+        l_axis[a] = sum(float(m["sd_dps"]) ** 2 * lf(float(m["tau_s"])) for m in ms)
+        v_tot += v
+    if v_tot <= 0:
+        return {a: 0.0 for a in members}, 0.1
+    r = sum(l_axis.values()) / v_tot
+    if rate_hz:
+        ph = max((r - 1.0) / (r + 1.0), 1e-9)
+        tau = -1.0 / (rate_hz * np.log(ph))
+        k = (1 + ph) / (1 - ph)
+    else:
+        tau, k = r / 2.0, r
+    return {a: float(np.sqrt(lv / k)) for a, lv in l_axis.items()}, float(tau)
+
+
+def flicker_to_truth(bank: dict[str, list[dict]]) -> tuple[dict, tuple[float, float] | None]:
+    """Bias instability B [deg/s] per axis and one flicker band [s] from each axis' slow GM bank.
+
+    The truth model renders flicker as a flat Allan floor of 0.664 B over a band of taus. Per axis the
+    bank's own Allan deviation (the slow members only) is evaluated on a fine tau grid; the band is
+    where it stays within a factor sqrt(2) of its peak (the floor), joined over the axes, and B is
+    the log-mean deviation over the band / 0.664. Returns ({axis: B}, (lo, hi)) or (.., None).
+    """
+    from gyrocal.model.allan import FLICKER_FLOOR, gauss_markov_avar
+
+    all_t = [float(m["tau_s"]) for ms in bank.values() for m in ms]
+    if not all_t:
+        return {a: 0.0 for a in bank}, None
+    taus = np.geomspace(min(all_t) / 10.0, max(all_t) * 10.0, 200)
+    adev, lo, hi = {}, np.inf, 0.0
+    for a, ms in bank.items():
+        av = sum((gauss_markov_avar(taus, float(m["sd_dps"]), float(m["tau_s"])) for m in ms),
+                 np.zeros_like(taus))
+        if not np.any(av > 0):
+            continue
+        adev[a] = np.sqrt(av)
+        inband = taus[adev[a] >= adev[a].max() / np.sqrt(2.0)]
+        lo, hi = min(lo, float(inband[0])), max(hi, float(inband[-1]))
+    if not adev or not hi > lo:
+        return {a: 0.0 for a in bank}, None
+    sel = (taus >= lo) & (taus <= hi)
+    b = {a: float(np.exp(np.mean(np.log(d[sel]))) / FLICKER_FLOOR) for a, d in adev.items()}
+    return b, (lo, hi)
+
+
 def truth_from_result(result: dict, thermal: Thermal | None = None) -> TruthModel:
-    """A TruthModel with the baseline noise level and the found effects (coefficients default)."""
-    noise = float(np.mean([result["noise_dps"][a] for a in AXES]))
-    return TruthModel(noise_dps=noise, thermal=thermal or Thermal(),
-                      effects=effects_from_findings(result["findings"]))
+    """A TruthModel with the log's noise and the found effects (coefficients default).
+
+    The white level is one number in the truth model: the mean over axes of the white part of the
+    fitted error model where coloured_noise is named (its colour goes to ``gm_dps``), else of the
+    per-sample noise (``noise_dps``).
+    """
+    rate = result.get("samples", {}).get("rate_hz")
+    effects = effects_from_findings(result["findings"], rate)
+    colour = next((f for f in result["findings"] if f["cause"] == "coloured_noise"), None)
+    white = []
+    for a in AXES:
+        if colour is not None and a in colour["axes"] and "white_dps" in colour["params"]:
+            white.append(float(colour["params"]["white_dps"][a]))
+        else:
+            white.append(float(result["noise_dps"][a]))
+    return TruthModel(noise_dps=float(np.mean(white)), thermal=thermal or Thermal(), effects=effects)

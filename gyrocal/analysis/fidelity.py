@@ -97,6 +97,10 @@ def fidelity_block(prob: Problem, fit_before: np.ndarray, fit_after: np.ndarray,
 
 
 def _drop(m: NoiseModel, what: str) -> NoiseModel:
+    """The model less its colour (fast members and narrow-band lines; their variance goes to the white
+    part, so the per-sample level stays) or less its flicker bank."""
     keep = m.slow if what == "colour" else m.fast
-    white = m.white_var + (sum(v for _, v in m.fast) if what == "colour" else 0.0)
-    return NoiseModel(m.rate_hz, white, list(keep), m.walk_q)
+    white = m.white_var
+    if what == "colour":
+        white += sum(v for _, v in m.fast) + sum(v for _, _, v in m.lines)
+    return NoiseModel(m.rate_hz, white, list(keep), m.walk_q, lines=[] if what == "colour" else list(m.lines))

@@ -22,12 +22,15 @@ session restarts the chains (the session offset regressor carries the level).
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.linalg import cho_solve_banded, cholesky_banded, lapack
 
 from gyrocal.analysis.noisemodel import NoiseModel
 
 COLUMN_CHUNK = 8
 """Columns solved at once: bounds the memory to M x states x COLUMN_CHUNK floats."""
+SEGMENT_ROWS = 1 << 18
+"""Rows of the state system swept at once by ``gram`` (memory: SEGMENT_ROWS x P floats)."""
+_tbtrs = getattr(lapack, "dtbtrs", None)
 
 
 class StateSpaceGLS:
@@ -103,5 +106,30 @@ class StateSpaceGLS:
         return self._latent(r[:, None]).sum(axis=1)[:, 0]
 
     def gram(self, x: np.ndarray) -> np.ndarray:
-        """x' V^-1 x (P, P)."""
-        return x.T @ self.vinv(x)
+        """x' V^-1 x (P, P) = x'Wx / s2 - |U'^-1 b|^2, b = A'Wx / s2, H = U'U.
+
+        One banded triangular sweep (LAPACK tbtrs) instead of the two of a full solve, in row
+        segments of ``SEGMENT_ROWS`` (the coupling of a segment to the previous one is the last
+        ``d`` solved rows), so the memory stays M x states x ``COLUMN_CHUNK`` floats at most.
+        """
+        wx = x * (self.w / self.s2)[:, None]
+        g = x.T @ wx
+        if not self.d or _tbtrs is None:
+            return g - (x.T @ (wx - self.vinv(x)) if self.d else 0.0)
+        d, p = self.d, x.shape[1]
+        rows = self.n * d
+        seg = max(d, (SEGMENT_ROWS // d) * d)
+        z_prev = np.zeros((0, p))
+        for a in range(0, rows, seg):
+            c = min(rows, a + seg)
+            rhs = np.asfortranarray(np.repeat(wx[a // d : c // d], d, axis=0))
+            if a:  # rows j < a + d depend on the previous segment's last d rows
+                for j in range(a, min(a + d, c)):
+                    for i in range(j - d, a):
+                        rhs[j - a] -= self.cb[d + i - j, j] * z_prev[i - (a - d)]
+            z, info = _tbtrs(self.cb[:, a:c], rhs, uplo="U", trans="T", overwrite_b=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"tbtrs failed (info {info})")
+            g -= z.T @ z
+            z_prev = z[-d:]
+        return g

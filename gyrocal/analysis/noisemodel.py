@@ -43,6 +43,11 @@ class NoiseModel:
     gm: list[tuple[float, float]] = field(default_factory=list)  # (correlation time [s], variance)
     walk_q: float = 0.0  # [(deg/s)^2 / s]
     misfit: float = 0.0  # weighted squared misfit of the Allan fit (about one per octave when right)
+    lines: list[tuple[float, float, float]] = field(default_factory=list)
+    """Narrow-band noise (a resonance whose frequency wanders, e.g. sunsided z at 31.4 Hz): (centre
+    [Hz], half width [Hz], variance [(deg/s)^2]) of a second-order (AR(2)) process. Part of the
+    colour; not in ``sample_sd`` (the broadband per-sample level) nor in the test's model (it has no
+    power at the low frequencies the regression causes live at)."""
 
     def phi(self, tau_s: float) -> float:
         return float(np.exp(-1.0 / (self.rate_hz * tau_s)))
@@ -80,9 +85,13 @@ class NoiseModel:
 
     def avar(self, m: np.ndarray) -> np.ndarray:
         """Allan variance [(deg/s)^2] at cluster sizes m (samples) of the whole model."""
-        shapes, _ = avar_shapes(np.asarray(m, float), self.rate_hz, [t for t, _ in self.gm])
+        m = np.asarray(m, float)
+        shapes, _ = avar_shapes(m, self.rate_hz, [t for t, _ in self.gm])
         v = np.array([self.white_var, *[v for _, v in self.gm], self.walk_q])
-        return shapes @ v
+        out = shapes @ v
+        for f, b, var in self.lines:
+            out = out + var * line_avar(m, f / self.rate_hz, b / self.rate_hz)
+        return out
 
     def without_colour_and_flicker(self) -> NoiseModel:
         """The white + walk part only (what the simulation had before the noise extension)."""
@@ -93,6 +102,8 @@ class NoiseModel:
                 "colour": [{"tau_s": t, "sd_dps": float(np.sqrt(v))} for t, v in self.fast],
                 "flicker_bank": [{"tau_s": t, "sd_dps": float(np.sqrt(v))} for t, v in self.slow],
                 "walk_dps_per_sqrt_s": float(np.sqrt(self.walk_q)),
+                "lines": [{"frequency_hz": f, "half_width_hz": b, "sd_dps": float(np.sqrt(v))}
+                          for f, b, v in self.lines],
                 "sample_sd_dps": self.sample_sd, "arw_dps_per_sqrt_hz": self.arw_dps_per_sqrt_hz}
 
     def simulate(self, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -107,7 +118,46 @@ class NoiseModel:
             x += lfilter([1.0], [1.0, -p], e)
         if self.walk_q > 0:
             x += np.cumsum(rng.normal(0.0, np.sqrt(self.walk_q / self.rate_hz), n))
+        for f, b, v in self.lines:
+            a1, a2 = _ar2(f / self.rate_hz, b / self.rate_hz)
+            burn = int(min(20 * self.rate_hz / max(b, 1e-6), 10 * n))  # reach the stationary state
+            e = rng.normal(0.0, 1.0, n + burn)
+            y = lfilter([1.0], [1.0, -a1, -a2], e)[burn:]
+            x += y * np.sqrt(v / _ar2_var(a1, a2))
         return x
+
+
+def _ar2(nu0: float, half_width: float) -> tuple[float, float]:
+    """AR(2) coefficients of a resonance at nu0 [cycles/sample] with a Lorentzian half width
+    [cycles/sample]: poles r exp(+-i 2 pi nu0), r = exp(-2 pi half_width)."""
+    r = float(np.exp(-2.0 * np.pi * max(half_width, 1e-6)))
+    return 2.0 * r * float(np.cos(2.0 * np.pi * nu0)), -r * r
+
+
+def _ar2_var(a1: float, a2: float) -> float:
+    """Stationary variance of x_n = a1 x_(n-1) + a2 x_(n-2) + e_n with unit-variance e."""
+    return float((1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1 * a1)))
+
+
+LINE_GRID = 1 << 16
+"""Frequency points on [0, 1/2] cycles/sample for a line's Allan shape (a 0.01 Hz wide line at 100 Hz
+spans 13 of them)."""
+
+
+def line_avar(m: np.ndarray, nu0: float, half_width: float) -> np.ndarray:
+    """Allan variance per unit variance of the AR(2) line (``_ar2``) at cluster sizes m [samples].
+
+    AVAR(m) = integral over nu in (0, 1/2) of p(nu) 2 sin^4(pi nu m) / (m^2 sin^2(pi nu)), p the
+    line's normalised one-sided spectrum (the transfer function of the difference of m-sample means).
+    """
+    a1, a2 = _ar2(nu0, half_width)
+    nu = (np.arange(LINE_GRID) + 0.5) / (2 * LINE_GRID)
+    z = np.exp(-2j * np.pi * nu)
+    p = 1.0 / np.abs(1 - a1 * z - a2 * z * z) ** 2
+    p /= p.sum()
+    m = np.asarray(m, float)
+    k = 2 * np.sin(np.pi * np.outer(m, nu)) ** 4 / (m[:, None] ** 2 * np.sin(np.pi * nu)[None, :] ** 2)
+    return k @ p
 
 
 def octave_m(n: int, max_fraction: float = 0.25) -> np.ndarray:
@@ -164,7 +214,8 @@ def bank_taus(rate_hz: float, n: int) -> list[float]:
     return taus
 
 
-def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: float = 0.0) -> NoiseModel:
+def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: float = 0.0,
+              lines: tuple[tuple[float, float], ...] = ()) -> NoiseModel:
     """Fit the error model to a residual series x (N,) [deg/s] by NNLS on its Allan variance.
 
     Each octave's relative error is about 1 / sqrt(N / m); the rows are weighted accordingly, so
@@ -173,6 +224,8 @@ def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: 
     ``upper`` > 0 fits the upper confidence limit of each octave instead (that many sigmas of the
     chi-square with the octave's degrees of freedom): the test's conservative model, because a short
     log's long-tau octaves are few and can hide a slow wander that the test would take for an effect.
+    ``lines`` ((centre, half width) [Hz], ...) adds a narrow-band member per line (``NoiseModel.lines``,
+    found in the residual's spectrum by ``noisecauses.find_lines``); "colour" in ``drop`` drops them.
     """
     x = np.asarray(x, float)
     n = x.size
@@ -185,14 +238,18 @@ def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: 
         meas = meas * edf / stats.chi2.ppf(stats.norm.sf(upper), edf)
     taus = bank_taus(rate_hz, n)
     shapes, _ = avar_shapes(m, rate_hz, taus)
+    lines = () if "colour" in drop else tuple(lines)
+    if lines:
+        shapes = np.column_stack([shapes, *[line_avar(m, f / rate_hz, b / rate_hz) for f, b in lines]])
     keep = np.ones(shapes.shape[1], dtype=bool)
+    iw = shapes.shape[1] - 1 - len(lines)  # the walk's column (the lines follow it)
     nf = len(FAST_TAUS_SAMPLES)
     if "colour" in drop:
         keep[1 : 1 + nf] = False
     if "flicker" in drop:
-        keep[1 + nf : -1] = False
+        keep[1 + nf : iw] = False
     if "walk" in drop:
-        keep[-1] = False
+        keep[iw] = False
     w = np.sqrt(n / m) / meas
     a = shapes[:, keep] * w[:, None]
     scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
@@ -200,14 +257,17 @@ def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: 
     v = v / scale
     full = np.zeros(shapes.shape[1])
     full[keep] = v
-    gm = [(t, float(vv)) for t, vv in zip(taus, full[1:-1], strict=True) if vv > 0]
-    return NoiseModel(rate_hz, float(full[0]), gm, float(full[-1]), float(rnorm**2))
+    gm = [(t, float(vv)) for t, vv in zip(taus, full[1:iw], strict=True) if vv > 0]
+    found = [(f, b, float(v)) for (f, b), v in zip(lines, full[iw + 1:], strict=True) if v > 0]
+    return NoiseModel(rate_hz, float(full[0]), gm, float(full[iw]), float(rnorm**2), found)
 
 
-def component_need(x: np.ndarray, rate_hz: float) -> dict[str, float]:
+def component_need(x: np.ndarray, rate_hz: float,
+                   lines: tuple[tuple[float, float], ...] = ()) -> dict[str, float]:
     """How much worse the Allan fit gets without each component (increase of the weighted misfit).
 
-    About 1 per octave is noise; a component a log really has costs tens to thousands.
+    About 1 per octave is noise; a component a log really has costs tens to thousands. ``lines`` as in
+    ``fit_noise`` (part of the colour).
     """
-    full = fit_noise(x, rate_hz).misfit
-    return {c: fit_noise(x, rate_hz, (c,)).misfit - full for c in ("colour", "flicker", "walk")}
+    full = fit_noise(x, rate_hz, lines=lines).misfit
+    return {c: fit_noise(x, rate_hz, (c,), lines=lines).misfit - full for c in ("colour", "flicker", "walk")}
