@@ -88,7 +88,9 @@ class Rig:
         self.daemon: subprocess.Popen[bytes] | None = None
         self.sim: subprocess.Popen[bytes] | None = None
         self.daemon_starts = 0
-        sched = tumble(0.8, 0.25)
+        # rests of 1.5 s: the still rule keeps a rest only past window + 2 margins + min_run (1.1 s),
+        # so the 0.8 s rests used before it gave no still data and no push at all
+        sched = tumble(1.5, 0.25)
         self.schedule = tmp / "schedule.yaml"
         self.schedule.write_text(yaml.safe_dump({"dwell_s": sched.dwell_s, "move_s": sched.move_s,
                                                  "poses": sched.poses_g.tolist()}))
