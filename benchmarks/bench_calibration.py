@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gyrocal.daemon.demo import predicted_left  # noqa: E402
+from gyrocal.daemon.demo import open_engine_and_unit, predicted_left  # noqa: E402
 
 DPH = 3600.0
 AXES = "xyz"
@@ -90,8 +90,6 @@ def run_link(kind: str, grade: str, rate_hz: float, seed: int, extra_s: float,
              timeout_s: float) -> dict[str, Any]:
     """One switch-on over a real pty or CAN bus (as `gyrocal demo --grade`), plus ``extra_s`` after."""
     from gyrocal.daemon.config import load_config
-    from gyrocal.daemon.engine import Engine
-    from gyrocal.daemon.virtual import free_udp_port, start_virtual_unit
 
     with tempfile.TemporaryDirectory(prefix="gyrocal-bench-cal-") as tmp:
         work = Path(tmp)
@@ -105,16 +103,7 @@ def run_link(kind: str, grade: str, rate_hz: float, seed: int, extra_s: float,
         state = {"hello": None, "alarm": False, "alarms": 0, "first": None}
         before: dict[str, float] = {}
         try:
-            if kind == "can":
-                port = free_udp_port()
-                engine = Engine(cfg, {**cfg.link, "kind": "can", "can": {
-                    "interface": "udp_multicast", "channel": "239.74.163.2", "port": port}})
-                engine.open()
-                unit = start_virtual_unit(cfg.virtual_unit, kind, work / "unit", can_port=port)
-            else:
-                unit = start_virtual_unit(cfg.virtual_unit, kind, work / "unit")
-                engine = Engine(cfg, {**cfg.link, **unit.link_cfg})
-                engine.open()
+            engine, unit = open_engine_and_unit(cfg, kind, work)
 
             def until(e: Any) -> bool:
                 s = e.session

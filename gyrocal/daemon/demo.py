@@ -28,7 +28,7 @@ from typing import Any
 from gyrocal.daemon.config import load_config
 from gyrocal.daemon.engine import Engine
 from gyrocal.daemon.logsetup import setup_logging
-from gyrocal.daemon.virtual import free_udp_port, start_virtual_unit
+from gyrocal.daemon.virtual import VirtualUnitProcess, free_udp_port, start_virtual_unit
 
 log = logging.getLogger("gyrocal.demo")
 DPH = 3600.0
@@ -39,6 +39,34 @@ def predicted_left(pred: dict[str, Any] | None) -> dict[str, Any] | None:
     sphere, whichever is worse), or the poses-seen one for a record written before it existed."""
     pred = pred or {}
     return pred.get("left") or pred.get("left_poses")
+
+
+def open_engine_and_unit(cfg: Any, kind: str, work: Path,
+                         node_id: int = 0) -> tuple[Engine, VirtualUnitProcess]:
+    """The daemon's engine and a virtual unit process (pty or CAN ``udp_multicast``), connected.
+
+    On a bus the engine listens before the unit switches on, or its HELLO goes unheard; on a pty the
+    unit comes first, since its port is the engine's link. A failure leaves nothing running."""
+    engine = unit = None
+    try:
+        if kind == "can":
+            can_port = free_udp_port()
+            engine = Engine(cfg, {**cfg.link, "kind": "can", "can_node_id": node_id,
+                                  "can": {"interface": "udp_multicast", "channel": "239.74.163.2",
+                                          "port": can_port}})
+            engine.open()
+            unit = start_virtual_unit(cfg.virtual_unit, kind, work / "unit", can_port=can_port)
+        else:
+            unit = start_virtual_unit(cfg.virtual_unit, kind, work / "unit")
+            engine = Engine(cfg, {**cfg.link, **unit.link_cfg})
+            engine.open()
+    except BaseException:
+        if engine is not None:
+            engine.close()
+        if unit is not None:
+            unit.stop()
+        raise
+    return engine, unit
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -74,22 +102,10 @@ def run_demo(kind: str, seed: int, rate_hz: float, timeout_s: float, grade: str 
             "virtual_unit.extra_args": extra, "link.can_node_id": node_id,
         })
         started = time.monotonic()
-        can_port = free_udp_port() if kind == "can" else None
         unit = None
         engine = None
         try:
-            if kind == "can":
-                # on a bus, listen before the unit switches on, or its HELLO goes unheard
-                link_cfg = {**cfg.link, "kind": "can", "can_node_id": node_id,
-                            "can": {"interface": "udp_multicast", "channel": "239.74.163.2",
-                                    "port": can_port}}
-                engine = Engine(cfg, link_cfg)
-                engine.open()
-                unit = start_virtual_unit(cfg.virtual_unit, kind, work / "unit", can_port=can_port)
-            else:
-                unit = start_virtual_unit(cfg.virtual_unit, kind, work / "unit")
-                engine = Engine(cfg, {**cfg.link, **unit.link_cfg})
-                engine.open()
+            engine, unit = open_engine_and_unit(cfg, kind, work, node_id)
             before: dict[str, Any] = {}
             push_at: dict[str, float] = {}
 
