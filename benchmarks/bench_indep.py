@@ -14,10 +14,11 @@ Per run it reports, from the unit's own truth and the daemon's status:
   and with the acked set, and ``cut`` = before / after per axis (the issue asks >= 10x);
 - ``false_alarms``: drift alarms in the daemon's log (the unit's drift law does not change within a
   switch-on, so every one is false);
-- ``predicted``: what the daemon predicted the set would leave (``left``: poses seen or sphere,
-  whichever is worse), and ``pred_ratio`` = measured / predicted (the issue asks within 2x);
-  ``predicted_poses_seen`` and ``pred_ratio_poses_seen`` the same over the poses seen only (the
-  unit's poses the daemon has not seen make the truth fall between the two);
+- ``predicted``: what the daemon expected the set to leave (``expected``: the geometric mean of
+  the figures over the poses seen and over the sphere, since the unit's poses are some of each), and
+  ``pred_ratio`` = measured / predicted (the issue asks within 2x); ``predicted_bound`` and
+  ``pred_ratio_bound`` the same for the gate's figure (``left``: the worse of the two, an upper bound),
+  ``predicted_poses_seen`` and ``pred_ratio_poses_seen`` for the poses seen only;
 - with ``--cycle``: a power cycle after the first push, and ``t_cycle_push_s``, the time from the new
   HELLO to the ACK of the new bias (the unit holds its first pose from switch-on, so its first still
   second ends about 1 s after the HELLO; the issue asks for the bias within 10 s of it), the cut
@@ -25,6 +26,11 @@ Per run it reports, from the unit's own truth and the daemon's status:
   bias-only push keeps the held set's gravity terms, so it is judged as: 10x, or within 3x of that).
 
 Runs take 30-60 s each; ``--parallel`` runs that many at once (2 on a 2-core machine).
+
+``--inprocess`` runs the same truth, schedule and noise against the daemon's Session in process
+(tests/indep/inprocess.py: no wire, no processes, the samples' own clock), about 1 s a run, for the
+statistics of the first push and its prediction over many seeds (``--seeds 40``); ``--links`` and
+``--cycle`` do not apply.
 """
 
 from __future__ import annotations
@@ -55,13 +61,19 @@ def _ack(unit: IndepUnit, boot: int) -> dict[str, Any] | None:
 def _figures(ack: dict[str, Any], pred: dict[str, Any] | None) -> dict[str, Any]:
     before = {a: ack["rms_before"][a] * DPH for a in AXES}
     after = {a: ack["rms_after"][a] * DPH for a in AXES}
-    left = (pred or {}).get("left") or {}
-    seen = (pred or {}).get("left_poses") or {}
+    pred = pred or {}
+    bound = pred.get("left") or {}
+    seen = pred.get("left_poses") or {}
+    expected = pred.get("expected") or {}
+
+    def ratio(p: dict[str, Any]) -> dict[str, float | None]:
+        return {a: (after[a] / p[a] if p.get(a) else None) for a in AXES}
+
     return {"before": before, "after": after,
             "cut": {a: before[a] / max(after[a], 1e-12) for a in AXES},
-            "predicted": left, "predicted_poses_seen": seen, "stage": (pred or {}).get("stage"),
-            "pred_ratio": {a: (after[a] / left[a] if left.get(a) else None) for a in AXES},
-            "pred_ratio_poses_seen": {a: (after[a] / seen[a] if seen.get(a) else None) for a in AXES}}
+            "predicted": expected, "predicted_bound": bound, "predicted_poses_seen": seen,
+            "stage": pred.get("stage"), "pred_ratio": ratio(expected), "pred_ratio_bound": ratio(bound),
+            "pred_ratio_poses_seen": ratio(seen)}
 
 
 def run_one(link: str, grade: str, rate: int, seed: int, cycle: bool, timeout_s: float) -> dict[str, Any]:
@@ -110,6 +122,21 @@ def run_one(link: str, grade: str, rate: int, seed: int, cycle: bool, timeout_s:
         unit.stop()
 
 
+def run_inprocess(grade: str, rate: int, seed: int, timeout_s: float) -> dict[str, Any]:
+    from tests.indep.inprocess import first_push
+    with tempfile.TemporaryDirectory(prefix="bench_indep_") as tmp:
+        r = first_push(Path(tmp), grade, float(rate), seed, max_s=timeout_s)
+    row: dict[str, Any] = {"link": "inproc", "grade": grade, "rate_hz": rate, "seed": seed}
+    if not r["pushed"]:
+        row["error"] = f"no push in {timeout_s:g} s"
+        return row
+    row["t_first_push_s"] = r["t_first_push_s"]
+    row.update(_figures({"rms_before": {a: v / DPH for a, v in r["before"].items()},
+                         "rms_after": {a: v / DPH for a, v in r["after"].items()}}, r["predicted_drift_dph"]))
+    row["false_alarms"] = 0  # not watched in process (the live runs count them)
+    return row
+
+
 def _fmt(row: dict[str, Any]) -> str:
     head = f"{row['link']:3} {row['grade']:5} {row['rate_hz']:5d} Hz seed {row['seed']}"
     if "error" in row and "cut" not in row:
@@ -137,10 +164,10 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "axes": len(cuts), "axes_cut_ge_10": sum(c >= 10 for c in cuts),
         "worst_cut": round(min(cuts), 1) if cuts else None,
         "pred_within_2x": sum(0.5 <= q <= 2.0 for q in ratios), "pred_axes": len(ratios),
-        # the measured drift against the range [poses seen, worse of seen and sphere], with 2x slack
-        "pred_in_range_2x": sum(r["pred_ratio"][a] is not None and r["pred_ratio_poses_seen"][a] is not None
-                                and r["pred_ratio"][a] <= 2.0 and r["pred_ratio_poses_seen"][a] >= 0.5
-                                for r in ok for a in AXES),
+        # the measured drift against the gate's upper bound, and against [poses seen / 2, bound * 2]
+        "under_bound": sum((r["pred_ratio_bound"][a] or 0.0) <= 1.0 for r in ok for a in AXES),
+        "pred_in_range_2x": sum((r["pred_ratio_bound"][a] or 9.0) <= 2.0
+                                and (r["pred_ratio_poses_seen"][a] or 0.0) >= 0.5 for r in ok for a in AXES),
         "t_first_push_s_max": max((r["t_first_push_s"] for r in ok), default=None),
         "cycle_runs": len(cyc),
         "cycle_t_push_s_max": max((r["t_cycle_push_s"] for r in cyc), default=None),
@@ -164,19 +191,26 @@ def main() -> int:
     p.add_argument("--parallel", type=int, default=2)
     p.add_argument("--cycle", action="store_true", help="power-cycle after the first push")
     p.add_argument("--timeout", type=float, default=120.0, help="per push [s]")
+    p.add_argument("--inprocess", action="store_true",
+                   help="the unit's physics against the daemon's Session in process (~1 s a run)")
     a = p.parse_args()
     if a.quick:
         a.rates, a.grades, a.seeds = "400", "fibre", 1
-    cases = [(link, grade, int(rate), seed) for grade in a.grades.split(",") for rate in a.rates.split(",")
-             for link in a.links.split(",") for seed in range(1, a.seeds + 1)]
     rows: list[dict[str, Any]] = []
-    with ThreadPoolExecutor(max_workers=max(1, a.parallel)) as pool:
-        futures = [pool.submit(run_one, *c, a.cycle, a.timeout) for c in cases]
-        for f in futures:
-            row = f.result()
-            rows.append(row)
-            if not a.json:
-                print(_fmt(row), flush=True)
+    if a.inprocess:
+        cases = [(grade, int(rate), seed) for grade in a.grades.split(",") for rate in a.rates.split(",")
+                 for seed in range(1, a.seeds + 1)]
+        results = (run_inprocess(*c, a.timeout) for c in cases)
+    else:
+        cases = [(link, grade, int(rate), seed) for grade in a.grades.split(",")
+                 for rate in a.rates.split(",") for link in a.links.split(",")
+                 for seed in range(1, a.seeds + 1)]
+        pool = ThreadPoolExecutor(max_workers=max(1, a.parallel))
+        results = (f.result() for f in [pool.submit(run_one, *c, a.cycle, a.timeout) for c in cases])
+    for row in results:
+        rows.append(row)
+        if not a.json:
+            print(_fmt(row), flush=True)
     summ = summary(rows)
     if a.json:
         print(json.dumps({"rows": rows, "summary": summ}, indent=1))

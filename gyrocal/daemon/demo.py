@@ -35,10 +35,10 @@ DPH = 3600.0
 
 
 def predicted_left(pred: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The drift a pushed set was predicted to leave [deg/h]: the gate's figure (poses seen and
-    sphere, whichever is worse), or the poses-seen one for a record written before it existed."""
+    """The drift a pushed set was expected to leave [deg/h]: between the poses seen and the sphere
+    (``expected``); for a record written before it existed, the gate's figure or the poses-seen one."""
     pred = pred or {}
-    return pred.get("left") or pred.get("left_poses")
+    return pred.get("expected") or pred.get("left") or pred.get("left_poses")
 
 
 def open_engine_and_unit(cfg: Any, kind: str, work: Path,

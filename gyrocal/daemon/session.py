@@ -121,7 +121,7 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
 DPH = 3600.0
 SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
 """Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
-PREDICTED_KEYS = ("left", "left_poses", "left_sphere", "removes")
+PREDICTED_KEYS = ("left", "expected", "left_poses", "left_sphere", "removes")
 """The per-axis figures [deg/s] of a prediction (learner.py), shown and recorded in deg/h."""
 
 
@@ -285,6 +285,11 @@ class Session(RecoveryMixin):
         # the unit is judged at poses the daemon may not have seen yet: what a set is predicted to
         # leave is the worse of the poses seen and the sphere (inf while the sphere is undetermined)
         p["left"] = np.fmax(p["left_poses"], p["left_sphere"])
+        # the figure to expect is between the two: the unit's poses are those seen and others not yet
+        # seen, in a proportion the daemon cannot know; the geometric mean is the estimate whose
+        # worst-case error factor, with the truth anywhere between the bounds, is smallest
+        with np.errstate(invalid="ignore"):
+            p["expected"] = np.sqrt(p["left_poses"] * p["left_sphere"])
         self.prediction = p
         return p
 
