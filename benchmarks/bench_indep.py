@@ -133,6 +133,9 @@ def run_inprocess(grade: str, rate: int, seed: int, timeout_s: float) -> dict[st
     row["t_first_push_s"] = r["t_first_push_s"]
     row.update(_figures({"rms_before": {a: v / DPH for a, v in r["before"].items()},
                          "rms_after": {a: v / DPH for a, v in r["after"].items()}}, r["predicted_drift_dph"]))
+    oracle = r["at_unit_poses_dph"]
+    row["pred_ratio_at_unit_poses"] = {a: (row["after"][a] / oracle[a] if oracle.get(a) else None)
+                                       for a in AXES}
     row["false_alarms"] = 0  # not watched in process (the live runs count them)
     return row
 
@@ -164,6 +167,9 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "axes": len(cuts), "axes_cut_ge_10": sum(c >= 10 for c in cuts),
         "worst_cut": round(min(cuts), 1) if cuts else None,
         "pred_within_2x": sum(0.5 <= q <= 2.0 for q in ratios), "pred_axes": len(ratios),
+        # in process only: the same learner at the unit's own poses (what no daemon can know)
+        "at_unit_poses_within_2x": sum(0.5 <= ((r.get("pred_ratio_at_unit_poses") or {}).get(a) or 0.0) <= 2.0
+                                       for r in ok for a in AXES),
         # the measured drift against the gate's upper bound, and against [poses seen / 2, bound * 2]
         "under_bound": sum((r["pred_ratio_bound"][a] or 0.0) <= 1.0 for r in ok for a in AXES),
         "pred_in_range_2x": sum((r["pred_ratio_bound"][a] or 9.0) <= 2.0

@@ -20,6 +20,7 @@ import numpy as np
 
 from gyrocal.daemon.config import load_config
 from gyrocal.daemon.store import CalibrationStore
+from gyrocal.model.prep import block_terms
 from gyrocal.protocol.messages import Hello
 from gyrocal.sim.schedule import tumble
 from gyrocal.sim.truth import TruthModel
@@ -110,7 +111,14 @@ def first_push(tmp: Path, grade: str, rate_hz: float, seed: int, max_s: float = 
     unit = IndepPhysicsUnit(grade, rate_hz, seed, 0x5EED0000 + seed)
     run = GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), rate_hz)
     run.switch_on()
-    run.run(max_s, lambda r: bool(r.pushes) and unit.applied is not None)
+    oracle: dict[str, float] = {}
+
+    def until(r: GradeRun) -> bool:
+        if r.pushes and not oracle and r.session is not None:
+            oracle.update(_at_unit_poses(r.session, unit))
+        return bool(r.pushes) and unit.applied is not None
+
+    run.run(max_s, until)
     row: dict[str, Any] = {"grade": grade, "rate_hz": rate_hz, "seed": seed, "pushed": bool(run.pushes)}
     if not run.pushes or unit.applied is None:
         row["pushed"] = False
@@ -120,5 +128,21 @@ def first_push(tmp: Path, grade: str, rate_hz: float, seed: int, max_s: float = 
     row.update({"t_first_push_s": round(run.pushes[0]["t"], 2),
                 "before": dict(zip("xyz", (before * 3600).tolist(), strict=True)),
                 "after": dict(zip("xyz", (after * 3600).tolist(), strict=True)),
-                "predicted_drift_dph": pred})
+                "predicted_drift_dph": pred, "at_unit_poses_dph": oracle})
     return row
+
+
+def _at_unit_poses(session: Any, unit: IndepPhysicsUnit) -> dict[str, float]:
+    """The daemon's own prediction [deg/h] evaluated at the unit's 24 poses, which it cannot know.
+
+    What the prediction would be if the daemon knew where the unit will be judged: the reference
+    for how close any estimate from the poses seen and the sphere can come.
+    """
+    g = unit.poses.gravity_at_poses()
+    k = len(g)
+    cols = {key: np.full(k, v) for key, v in session._context.items()}
+    cols.update({"ax": g[:, 0], "ay": g[:, 1], "az": g[:, 2]})
+    cols.setdefault("t", np.zeros(k))
+    phi = block_terms(session.spec, cols)
+    p = session.learner.prediction(phi, session._sphere_phi(), None, session.holdout.blocks)
+    return dict(zip("xyz", (np.asarray(p["left_poses"]) * 3600.0).tolist(), strict=True))
