@@ -62,7 +62,7 @@ def _figures(ack: dict[str, Any], pred: dict[str, Any] | None) -> dict[str, Any]
     before = {a: ack["rms_before"][a] * DPH for a in AXES}
     after = {a: ack["rms_after"][a] * DPH for a in AXES}
     pred = pred or {}
-    bound = pred.get("left") or {}
+    bound = pred.get("bound") or pred.get("left") or {}
     seen = pred.get("left_poses") or {}
     expected = pred.get("expected") or {}
 

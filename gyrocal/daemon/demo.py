@@ -35,8 +35,8 @@ DPH = 3600.0
 
 
 def predicted_left(pred: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The drift a pushed set was expected to leave [deg/h]: between the poses seen and the sphere
-    (``expected``); for a record written before it existed, the gate's figure or the poses-seen one."""
+    """The drift a pushed set was expected to leave [deg/h]: the poses seen and the sphere mixed in the
+    share of rests at poses not seen yet (``expected``); for an older record, ``left`` or the poses seen."""
     pred = pred or {}
     return pred.get("expected") or pred.get("left") or pred.get("left_poses")
 
