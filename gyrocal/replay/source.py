@@ -75,6 +75,13 @@ class Recording:
         rec = self._messages()
         pending: list[Sample] = []
         for m in rec.messages():
+            if isinstance(m, np.ndarray):  # a block decoded in bulk (readers.canbulk)
+                if pending:
+                    yield "samples", samples_to_block(pending)
+                    pending = []
+                for i in range(0, m.size, BLOCK):
+                    yield "samples", m[i:i + BLOCK]
+                continue
             if type(m) is Sample:
                 pending.append(m)
                 if len(pending) >= BLOCK:
