@@ -16,7 +16,8 @@ python-can follows Toby Lorenz' vector_blf):
 - the containers' data, concatenated, is a stream of objects (an object may start in one container
   and end in the next), each located at the first ``"LOBJ"`` within 4 bytes of where the previous
   one ended. After the base header comes header v1 (flags u32, client index u16, object version
-  u16, timestamp u64: 16 bytes) or v2 (32 bytes); the flags say 10 us (1) or 1 ns (2) ticks;
+  u16, timestamp u64: 16 bytes) or v2 (24 bytes: flags u32, timestamp status u8, 1 byte, object
+  version u16, timestamp u64, original timestamp u64); the flags say 10 us (1) or 1 ns (2) ticks;
 - CAN_MESSAGE (1) and CAN_MESSAGE2 (86): channel u16, flags u8 (0x80 remote, 0x01 tx), dlc u8,
   id u32 (bit 31: extended), 8 data bytes; CAN_FD_MESSAGE (100), CAN_FD_MESSAGE_64 (101) and
   CAN_ERROR_EXT (73) are read object by object into the ``can.Message`` python-can would give.
@@ -62,7 +63,7 @@ T_CAN_MESSAGE, T_LOG_CONTAINER, T_CAN_ERROR_EXT, T_CAN_MESSAGE2 = 1, 10, 73, 86
 T_CAN_FD_MESSAGE, T_CAN_FD_MESSAGE_64 = 100, 101
 CLASSIC = (T_CAN_MESSAGE, T_CAN_MESSAGE2)
 SPECIAL = (T_CAN_ERROR_EXT, T_CAN_FD_MESSAGE, T_CAN_FD_MESSAGE_64)
-HEADER_BYTES = {1: 16, 2: 32}
+HEADER_BYTES = {1: 16, 2: 24}
 """Object header version -> its bytes after the 16-byte base header (python-can's structs)."""
 CAN_MSG_EXT = 0x80000000
 REMOTE_FLAG = 0x80
