@@ -92,7 +92,13 @@ def test_shipped_recording_reads_the_same_fast() -> None:
     assert rec.bulk_samples >= 3990  # all but the first sample after each anchor-less start
 
 
-def test_mixed_bus_with_damage_of_every_kind(tmp_path: Path) -> None:
+@pytest.mark.parametrize("piece", [None, 3001])  # whole, or parsed a few containers at a time
+def test_mixed_bus_with_damage_of_every_kind(piece: int | None, tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    from gyrocal.readers import blf
+
+    if piece:
+        monkeypatch.setattr(blf, "PIECE_BYTES", piece)
     rng = np.random.default_rng(11)
     frames = _unit_frames(rng)
     codec = CanCodec()
@@ -139,6 +145,9 @@ def test_mixed_bus_with_damage_of_every_kind(tmp_path: Path) -> None:
     assert ref.dropped.get("incomplete", 0) > 5 and ref.dropped.get("length_errors", 0) > 0
     assert ref.dropped.get("error_frames", 0) > 0 and ref.dropped.get("unknown_types", 0) > 0
     assert int(ref.metadata["host_frames"]) >= 4
+    rec = CanRecording(str(path))
+    list(rec.messages())
+    assert rec.bulk_samples > 0.8 * len(fast)  # the bulk path did most of it
 
 
 def test_clean_log_over_a_long_gap_and_a_time_jump(tmp_path: Path) -> None:
@@ -221,8 +230,14 @@ def _container_spans(path: Path) -> list[tuple[int, int, int]]:
 
 @pytest.mark.parametrize("container", [4800, 4000])  # objects whole in each container, or spanning two
 @pytest.mark.parametrize("damage", ["corrupt", "truncated"])
-def test_a_damaged_container_is_counted_and_never_believed(container: int, damage: str,
-                                                           tmp_path: Path) -> None:
+@pytest.mark.parametrize("piece", [None, 9000])
+def test_a_damaged_container_is_counted_and_never_believed(container: int, damage: str, piece: int | None,
+                                                           tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    from gyrocal.readers import blf
+
+    if piece:
+        monkeypatch.setattr(blf, "PIECE_BYTES", piece)
     rng = np.random.default_rng(container)
     frames = _unit_frames(rng)  # classic frames only: 48 bytes per object
     path = tmp_path / "whole.blf"

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,6 +68,8 @@ HEADER_BYTES = {1: 16, 2: 24}
 """Object header version -> its bytes after the 16-byte base header (python-can's structs)."""
 CAN_MSG_EXT = 0x80000000
 REMOTE_FLAG = 0x80
+PIECE_BYTES = 1 << 24
+"""Decompressed container data parsed at once (16 MiB, ~350,000 classic frames)."""
 MAX_OBJECT = 1 << 24
 """An inner object bigger than this (16 MiB) is taken as a damaged header, not believed."""
 
@@ -207,10 +210,15 @@ def _count(dropped: dict[str, int], reason: str, n: int = 1) -> None:
         dropped[reason] = dropped.get(reason, 0) + n
 
 
-def _parse_stream(buf: bytes, out: _Builder, dropped: dict[str, int], resync_first: bool) -> int:
-    """Read the objects of one unbroken stretch of container data into ``out``; returns the count of
-    non-CAN objects. ``resync_first``: the stretch follows a dropped container, so its first bytes
-    may be the rest of an object that started there."""
+def _parse_stream(buf: bytes, out: _Builder, dropped: dict[str, int], resync_first: bool,
+                  final: bool) -> tuple[int, int]:
+    """Read the objects of a piece of one unbroken stream of container data into ``out``.
+
+    Returns (non-CAN objects seen, where reading stopped). ``resync_first``: the piece follows a
+    dropped container, so its first bytes may be the rest of an object that started there.
+    ``final``: nothing follows, so an object cut off at the end is counted; otherwise reading
+    stops at its start, for the caller to join it to the next container's data.
+    """
     n = len(buf)
     other = 0
     pos = 0
@@ -223,17 +231,18 @@ def _parse_stream(buf: bytes, out: _Builder, dropped: dict[str, int], resync_fir
         j = buf.find(LOBJ, pos, pos + 8)  # python-can: the next object within padding of the last
         if j < 0:
             if pos + 8 > n:  # the end: zero padding, or the start of an object cut off
+                if not final:
+                    return other, pos
                 if any(buf[pos:n]):
                     _count(dropped, "cut_objects")
-                return other
+                return other, n
             j = _resync(buf, pos)
             _count(dropped, "garbage_bytes", j - pos)
             pos = j
             continue
         pos = j
         if pos + BASE.size > n:
-            _count(dropped, "cut_objects")
-            return other
+            break
         if not _plausible(buf, pos):
             j = _resync(buf, pos + 1)
             _count(dropped, "garbage_bytes", j - pos)
@@ -241,8 +250,7 @@ def _parse_stream(buf: bytes, out: _Builder, dropped: dict[str, int], resync_fir
             continue
         _, hsize, hver, osize, otype = BASE.unpack_from(buf, pos)
         if pos + osize > n:
-            _count(dropped, "cut_objects")
-            return other
+            break
         body = pos + 16 + HEADER_BYTES[hver]
         if otype in CLASSIC and osize >= body - pos + CAN_MSG.size:
             pos = _classic_run(buf, pos, out)
@@ -252,7 +260,10 @@ def _parse_stream(buf: bytes, out: _Builder, dropped: dict[str, int], resync_fir
         else:
             other += 1
         pos += osize
-    return other
+    if pos < n and final:
+        _count(dropped, "cut_objects")
+        return other, n
+    return other, min(pos, n)
 
 
 HEAD_DTYPE = np.dtype([("a", "<u8"), ("b", "<u8")])
@@ -288,78 +299,127 @@ def _classic_run(buf: bytes, pos: int, out: _Builder) -> int:
     return pos + good * stride
 
 
-def read_blf_frames(path: str | Path) -> BlfFrames:
-    """Every CAN frame of a .blf file, in file order (see the module docstring for what is dropped).
+class BlfReader:
+    """The CAN frames of a .blf, read in pieces of about ``piece_bytes`` of decompressed data, so a
+    long log (an hour at 2 kHz holds about 1 GB of objects) never sits in memory whole.
 
-    Raises LogFormatError if the file cannot be opened or does not start with a BLF header.
+    ``chunks()`` yields ``BlfFrames`` in file order; once it has run, ``dropped``,
+    ``other_objects`` and ``containers`` hold the totals. Raises LogFormatError if the file
+    cannot be opened or does not start with a BLF header.
     """
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as err:
-        raise LogFormatError(f"{p}: cannot open the log ({err.strerror})") from err
-    if len(raw) < FILE_HEADER.size or raw[:4] != b"LOGG":
-        raise LogFormatError(f"{p}: not a BLF file (no 'LOGG' header)")
-    pos = FILE_HEADER.unpack_from(raw, 0)[1]
-    dropped: dict[str, int] = {}
-    stretches: list[tuple[list[bytes], bool]] = []  # (containers' data, starts after a dropped one)
-    current: list[bytes] = []
-    after_drop = False
-    containers = 0
-    n = len(raw)
 
-    def drop(reason: str) -> None:
-        nonlocal current, after_drop
-        dropped[reason] = dropped.get(reason, 0) + 1
-        if current:
-            stretches.append((current, after_drop))
-        current, after_drop = [], True
+    def __init__(self, path: str | Path, piece_bytes: int | None = None) -> None:
+        self.path = Path(path)
+        self.piece_bytes = piece_bytes or PIECE_BYTES
+        self.dropped: dict[str, int] = {}
+        self.other_objects = 0
+        self.containers = 0
+        try:
+            with self.path.open("rb") as fh:
+                head = fh.read(FILE_HEADER.size)
+        except OSError as err:
+            raise LogFormatError(f"{self.path}: cannot open the log ({err.strerror})") from err
+        if len(head) < FILE_HEADER.size or head[:4] != b"LOGG":
+            raise LogFormatError(f"{self.path}: not a BLF file (no 'LOGG' header)")
+        self.header_size = FILE_HEADER.unpack(head)[1]
 
-    while pos < n:
-        if raw[pos:pos + 4] != LOBJ or pos + BASE.size > n:
-            j = raw.find(LOBJ, pos + 1)
-            j = n if j < 0 else j
-            if any(raw[pos:j]):  # zero padding is not garbage
-                dropped["garbage_bytes"] = dropped.get("garbage_bytes", 0) + (j - pos)
-            pos = j
-            continue
-        _, _, _, osize, otype = BASE.unpack_from(raw, pos)
-        if osize < BASE.size:
-            dropped["garbage_bytes"] = dropped.get("garbage_bytes", 0) + 4
-            pos += 4
-            continue
-        end = pos + osize
-        if otype != T_LOG_CONTAINER:
+    def _containers(self, raw: Any) -> Iterator[bytes | None]:
+        """Each container's data in file order; None for one that is dropped (and counted)."""
+        n = len(raw)
+        pos = self.header_size
+        while pos < n:
+            if pos + BASE.size > n or raw[pos:pos + 4] != LOBJ:
+                j = raw.find(LOBJ, pos + 1)
+                j = n if j < 0 else j
+                if any(raw[pos:j]):  # zero padding is not garbage
+                    _count(self.dropped, "garbage_bytes", j - pos)
+                pos = j
+                continue
+            _, _, _, osize, otype = BASE.unpack_from(raw, pos)
+            if osize < BASE.size:
+                _count(self.dropped, "garbage_bytes", 4)
+                pos += 4
+                continue
+            end = pos + osize
+            if otype != T_LOG_CONTAINER:
+                pos = end + osize % 4
+                continue
+            self.containers += 1
+            if end > n or osize < BASE.size + CONTAINER.size:
+                _count(self.dropped, "truncated_containers")
+                yield None
+                return
+            method, size = CONTAINER.unpack_from(raw, pos + BASE.size)
+            cdata = raw[pos + BASE.size + CONTAINER.size:end]
             pos = end + osize % 4
-            continue
-        containers += 1
-        if end > n or osize < BASE.size + CONTAINER.size:
-            drop("truncated_containers")
-            break
-        method, size = CONTAINER.unpack_from(raw, pos + BASE.size)
-        cdata = raw[pos + BASE.size + CONTAINER.size:end]
-        pos = end + osize % 4
-        if method == 0:
-            data = cdata
-        elif method == 2:
+            if method == 0:
+                yield bytes(cdata)
+                continue
+            if method != 2:
+                _count(self.dropped, "unknown_compression_containers")
+                yield None
+                continue
             z = zlib.decompressobj()
             try:
                 data = z.decompress(cdata)
             except zlib.error:
-                drop("corrupt_containers")
+                data = None
+            if data is None or not z.eof or (size and len(data) != size):
+                _count(self.dropped, "corrupt_containers")
+                yield None
                 continue
-            if not z.eof or (size and len(data) != size):
-                drop("corrupt_containers")
+            yield data
+
+    def chunks(self) -> Iterator[BlfFrames]:
+        """The frames, a piece at a time (each piece's ``special`` indexed within the piece)."""
+        import mmap
+
+        with self.path.open("rb") as fh:
+            size = self.path.stat().st_size
+            raw: Any = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+            try:
+                yield from self._pieces(raw)
+            finally:
+                if isinstance(raw, mmap.mmap):
+                    raw.close()
+
+    def _pieces(self, raw: Any) -> Iterator[BlfFrames]:
+        parts: list[bytes] = []
+        held, resync = 0, False
+        for data in self._containers(raw):
+            if data is None:  # the stream breaks: what is held ends here
+                if parts:
+                    yield self._piece(b"".join(parts), resync, final=True)[0]
+                parts, held, resync = [], 0, True
                 continue
-        else:
-            drop("unknown_compression_containers")
-            continue
-        current.append(data)
-    if current:
-        stretches.append((current, after_drop))
-    out = _Builder()
-    other = 0
-    for parts, resync in stretches:
-        other += _parse_stream(b"".join(parts), out, dropped, resync)
-    arb_id, flags, length, payload = out.result()
-    return BlfFrames(arb_id, flags, length, payload, out.special, dropped, other, containers)
+            parts.append(data)
+            held += len(data)
+            if held >= self.piece_bytes:
+                buf = b"".join(parts)
+                frames, stop = self._piece(buf, resync, final=False)
+                yield frames
+                parts, held, resync = [buf[stop:]], len(buf) - stop, False
+        if parts:
+            yield self._piece(b"".join(parts), resync, final=True)[0]
+
+    def _piece(self, buf: bytes, resync: bool, final: bool) -> tuple[BlfFrames, int]:
+        out = _Builder()
+        other, stop = _parse_stream(buf, out, self.dropped, resync, final)
+        self.other_objects += other
+        arb_id, flags, length, payload = out.result()
+        return BlfFrames(arb_id, flags, length, payload, out.special), stop
+
+
+def read_blf_frames(path: str | Path) -> BlfFrames:
+    """Every CAN frame of a .blf file, in file order, in one piece (see ``BlfReader``)."""
+    reader = BlfReader(path)
+    pieces = list(reader.chunks())
+    special: dict[int, Any] = {}
+    base = 0
+    for f in pieces:
+        special.update({base + i: m for i, m in f.special.items()})
+        base += len(f)
+    kinds = (("arb_id", np.uint32), ("flags", np.uint8), ("length", np.int16), ("payload", np.uint64))
+    cols = [np.concatenate([getattr(f, c) for f in pieces]) if pieces else np.zeros(0, dtype=d)
+            for c, d in kinds]
+    return BlfFrames(*cols, special, dict(reader.dropped), reader.other_objects, reader.containers)

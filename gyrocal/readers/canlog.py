@@ -61,19 +61,20 @@ class CanRecording:
         """Decoded unit messages (Sample, Hello, CoeffReport, ...) in the order of the file; a .blf
         read in bulk also yields SAMPLE_DTYPE blocks (rx = 0) of consecutive samples."""
         if self.fast:
-            from gyrocal.readers.blf import read_blf_frames
+            from gyrocal.readers.blf import BlfReader
 
             try:
-                frames = read_blf_frames(self.path)
+                blf = BlfReader(self.path)
             except LogFormatError:
-                frames = None  # not a BLF header: python-can's reader says what it is
-            if frames is not None:
+                blf = None  # not a BLF header: python-can's reader says what it is
+            if blf is not None:
                 from gyrocal.readers.canbulk import BulkCanDecoder
 
-                for reason, n in frames.dropped.items():
-                    self.counts[f"blf_{reason}"] = n
                 bulk = BulkCanDecoder(self.codec, self.decoder, self.accept, self.route, self.counts)
-                yield from bulk.messages(frames)
+                for frames in blf.chunks():
+                    yield from bulk.messages(frames)
+                for reason, n in blf.dropped.items():
+                    self.counts[f"blf_{reason}"] = n
                 self.bulk_samples = bulk.bulk_samples
                 return
         try:
