@@ -8,6 +8,7 @@ finds interfaces), so ``gyrocal fit run.csv`` never imports pyulog, pymavlink or
 - ``serial``: a capture of the serial protocol's raw bytes (.cap, .raw, .serial);
 - ``ulog``: PX4 .ulg (sensor_gyro + sensor_accel of one instance, or sensor_combined);
 - ``dataflash``: ArduPilot .bin (IMU messages of one instance);
+- ``tlog``: MAVLink telemetry log .tlog (HIGHRES_IMU > SCALED_IMU(n) > RAW_IMU of one instance);
 - ``rosbag``: rosbag2 (.mcap, .db3 or its directory) or ROS 1 .bag sensor_msgs/msg/Imu.
 
 Each reader converts to deg/s, g, degC and s, and counts what it dropped, by reason, in
@@ -31,6 +32,7 @@ READERS: dict[str, tuple[str, str]] = {
     "serial": ("gyrocal.readers.serialcap", "read_serial_capture"),
     "ulog": ("gyrocal.readers.ulog", "read_ulog"),
     "dataflash": ("gyrocal.readers.dataflash", "read_dataflash"),
+    "tlog": ("gyrocal.readers.tlog", "read_tlog"),
     "rosbag": ("gyrocal.readers.rosbag", "read_rosbag"),
 }
 """Format kind -> (module, function(path, options) -> LogData)."""
@@ -41,6 +43,7 @@ EXTENSIONS: dict[str, str] = {
     ".cap": "serial", ".raw": "serial", ".serial": "serial",
     ".ulg": "ulog",
     ".bin": "dataflash",
+    ".tlog": "tlog",
     ".mcap": "rosbag", ".db3": "rosbag", ".bag": "rosbag",
 }
 """File extension -> kind; ``--format`` overrides. A .bin that does not start with DataFlash's
@@ -54,7 +57,7 @@ class ReadOptions:
     """What a reader may need beyond the path (all optional).
 
     columns: our column name -> the file's (CSV); units: quantity -> unit (CSV);
-    instance: which IMU of several (ULog, DataFlash; default 0); topic: which topic or message
+    instance: which IMU of several (ULog, DataFlash, .tlog; default 0); topic: which topic or message
     (ULog: sensor_gyro or sensor_combined; ROS: the Imu topic); dbc: the CAN database.
     """
 
@@ -122,7 +125,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the units the log holds, e.g. gyro=rad/s,accel=m/s^2,temp=K,time=ms "
                         "(default: its '# units:' line, else deg/s, g, degC, s)")
     g.add_argument("--instance", type=int, default=0, metavar="N",
-                   help="which IMU of several in a .ulg or .bin (default 0)")
+                   help="which IMU of several in a .ulg, .bin or .tlog (default 0)")
     g.add_argument("--topic", metavar="NAME",
                    help="ULog topic (sensor_gyro or sensor_combined) or ROS Imu topic (default: found)")
     g.add_argument("--dbc", metavar="FILE.dbc", help="CAN database for python-can logs (default: shipped)")
