@@ -6,7 +6,8 @@ finds interfaces), so ``gyrocal fit run.csv`` never imports pyulog, pymavlink or
 - ``csv``: our CSV log, or any CSV with ``--columns`` (a column map) and ``--units``;
 - ``can``: a python-can log (.asc, .blf, candump .log, .trc, .mf4, ...) decoded with our DBC;
 - ``serial``: a capture of the serial protocol's raw bytes (.cap, .raw, .serial);
-- ``ulog``: PX4 .ulg (sensor_gyro + sensor_accel of one instance, or sensor_combined);
+- ``ulog``: PX4 .ulg (sensor_gyro_fifo + sensor_accel_fifo, or sensor_gyro + sensor_accel, of one
+  instance; or sensor_combined);
 - ``dataflash``: ArduPilot .bin (IMU messages of one instance);
 - ``tlog``: MAVLink telemetry log .tlog (HIGHRES_IMU > SCALED_IMU(n) > RAW_IMU of one instance);
 - ``rosbag``: rosbag2 (.mcap, .db3 or its directory) or ROS 1 .bag sensor_msgs/msg/Imu.
@@ -58,7 +59,7 @@ class ReadOptions:
 
     columns: our column name -> the file's (CSV); units: quantity -> unit (CSV);
     instance: which IMU of several (ULog, DataFlash, .tlog; default 0); topic: which topic or message
-    (ULog: sensor_gyro or sensor_combined; ROS: the Imu topic); dbc: the CAN database.
+    (ULog: sensor_gyro_fifo, sensor_gyro or sensor_combined; ROS: the Imu topic); dbc: the CAN database.
     """
 
     columns: dict[str, str] = field(default_factory=dict)
@@ -127,7 +128,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--instance", type=int, default=0, metavar="N",
                    help="which IMU of several in a .ulg, .bin or .tlog (default 0)")
     g.add_argument("--topic", metavar="NAME",
-                   help="ULog topic (sensor_gyro or sensor_combined) or ROS Imu topic (default: found)")
+                   help="ULog topic (sensor_gyro_fifo, sensor_gyro or sensor_combined) or ROS Imu topic "
+                        "(default: found)")
     g.add_argument("--dbc", metavar="FILE.dbc", help="CAN database for python-can logs (default: shipped)")
 
 
