@@ -331,3 +331,21 @@ def test_random_damage_never_invents_samples(tmp_path: Path) -> None:
         got = np.column_stack([log[c] for c in ("t", "wx", "wy", "wz", "ax", "temp")])
         assert all(tuple(r) in rows for r in got), trial
         assert len(log) == len(truth) or log.dropped, trial
+
+
+def test_a_dbc_whose_scales_the_decoder_does_not_apply_is_not_decoded_in_bulk(tmp_path: Path) -> None:
+    """CanDecoder divides by its own counts per unit; a DBC saying otherwise must not make the bulk
+    path disagree with it: the bulk path stands aside (sample_signals is None)."""
+    from gyrocal.protocol.can_codec import DEFAULT_DBC
+    from gyrocal.readers.canbulk import sample_signals
+
+    text = DEFAULT_DBC.read_text()
+    dbc = tmp_path / "other.dbc"
+    dbc.write_text(text.replace('GYRO_X : 16|32@1- (1e-06,0)', 'GYRO_X : 16|32@1- (1e-05,0)'))
+    assert sample_signals(CanCodec(dbc)) is None and sample_signals(CanCodec()) is not None
+    path = DATA / "sim_can" / "virtual_unit.blf"
+    fast = read_canlog(str(path), ReadOptions(dbc=str(dbc)), fast=True)
+    ref = read_canlog(str(path), ReadOptions(dbc=str(dbc)), fast=False)
+    for c in ref.columns:
+        np.testing.assert_array_equal(fast[c], ref[c])
+    assert len(fast) == 4000

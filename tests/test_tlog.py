@@ -154,3 +154,16 @@ def test_real_ardusub_tlog(capsys: pytest.CaptureFixture, tmp_path: Path) -> Non
     assert main(["fit", str(ARDUSUB), "--terms", "1", "--all-samples", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["samples"] == 528
+
+
+def test_replay_reads_a_tlog(tmp_path: Path) -> None:
+    from gyrocal.daemon.config import load_config
+    from gyrocal.replay.run import replay
+    from gyrocal.replay.source import open_recording
+
+    state = tmp_path / "state"
+    state.mkdir()
+    cfg = load_config(None, {"state_dir": str(state), "control_socket": str(tmp_path / "c.sock"),
+                             "watchdog": False})
+    res = replay(open_recording(str(ARDUSUB)), cfg)
+    assert res["format"] == "tlog" and res["samples"] == 528

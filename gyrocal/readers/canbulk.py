@@ -43,6 +43,8 @@ class _Signal:
     def __init__(self, sig: Any) -> None:
         self.name, self.start, self.length, self.signed = sig.name, sig.start, sig.length, sig.is_signed
         self.scale, self.offset = sig.scale, sig.offset
+        self.per_unit = float(round(1.0 / sig.scale))
+        """Counts per unit (1 / the DBC's scale, an integer): value = raw / per_unit, as CanDecoder."""
 
     def raw(self, payload: np.ndarray) -> np.ndarray:
         v = ((payload >> np.uint64(self.start)) & np.uint64((1 << self.length) - 1)).astype(np.int64)
@@ -227,7 +229,7 @@ class BulkCanDecoder:
         for col, frame, sig in (("wx", pa, sa["GYRO_X"]), ("wy", pb, sb["GYRO_Y"]), ("wz", pc, sc["GYRO_Z"]),
                                 ("ax", pb, sb["ACCEL_X"]), ("ay", pb, sb["ACCEL_Y"]),
                                 ("az", pc, sc["ACCEL_Z"]), ("temp", pa, sa["TEMP"])):
-            block[col] = sig.raw(frame[:m]) / float(SCALED[sig.name])
+            block[col] = sig.raw(frame[:m]) / sig.per_unit
         anchors = int(anch[:m].sum())
         self.decoder.advance_samples(last_seq + m, int(t[m - 1]), int(step[m - 1]), 3 * m, anchors)
         self.bulk_samples += m
