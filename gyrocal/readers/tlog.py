@@ -28,6 +28,7 @@ temperature (docs/mavlink.md says what each autopilot puts in them). Per IMU ins
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,6 +63,9 @@ def _instance(msg: Any, kind: str, scaled: tuple[str, ...]) -> int:
 def _open(path: str) -> Any:
     require("pymavlink", "reading MAVLink .tlog logs")
     from gyrocal.mavlink import pymav
+
+    if not Path(path).is_file():  # else pymavlink takes the name for a serial port
+        raise LogFormatError(f"{path}: cannot open the log (no such file)")
 
     try:
         return pymav.mavutil().mavlink_connection(path, dialect="ardupilotmega")
@@ -109,7 +113,8 @@ def read_tlog(path: str, options: ReadOptions) -> LogData:
             s.temp.append(np.nan if r.temp_c is None else r.temp_c)
             s.all_zero.append(not any(r.gyro_dps) and not any(r.accel_g))
             n += 1
-        counts = {conn.id_to_name.get(k, str(k)): c for k, c in getattr(conn, "counts", {}).items()}
+        names = getattr(conn, "id_to_name", {})
+        counts = {names.get(k, str(k)): c for k, c in getattr(conn, "counts", {}).items()}
     except LogFormatError:
         raise
     except Exception as err:  # as above
