@@ -124,19 +124,22 @@ def _ulog_pack(fields: list[tuple[str, str]], row: dict) -> bytes:
     return out
 
 
-def write_ulog(path: Path, instances: list[tuple[str, int, list[dict]]]) -> None:
+def write_ulog(path: Path, instances: list[tuple[str, int, list[dict]]],
+               fields: dict[str, list[tuple[str, str]]] | None = None) -> None:
     """A ULog file holding, for each (topic of ULOG_TOPICS, multi_id, rows), its messages; a row
-    gives every field (arrays as sequences); messages are written in time order."""
+    gives every field (arrays as sequences); messages are written in time order. ``fields``
+    overrides a topic's field list (e.g. an older PX4's)."""
+    spec_of = {**ULOG_TOPICS, **(fields or {})}
     out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0))
     out += _ulog_msg("B", bytes(16) + struct.pack("<3Q", 0, 0, 0))
     for name in sorted({t for t, _, _ in instances}):
-        spec = ";".join(f"{ftype} {fname}" for ftype, fname in ULOG_TOPICS[name]) + ";"
+        spec = ";".join(f"{ftype} {fname}" for ftype, fname in spec_of[name]) + ";"
         out += _ulog_msg("F", f"{name}:{spec}".encode())
     data: list[tuple[int, int, bytes]] = []
     for msg_id, (name, multi_id, rows) in enumerate(instances):
         out += _ulog_msg("A", struct.pack("<BH", multi_id, msg_id) + name.encode())
         for k, row in enumerate(rows):
-            body = struct.pack("<H", msg_id) + _ulog_pack(ULOG_TOPICS[name], row)
+            body = struct.pack("<H", msg_id) + _ulog_pack(spec_of[name], row)
             data.append((int(row["timestamp"]), msg_id * 10**9 + k, _ulog_msg("D", body)))
     for _, _, msg in sorted(data):
         out += msg

@@ -115,3 +115,22 @@ def test_expand_fifo_counts_a_bad_message_and_orders_samples() -> None:
     assert bad == 1
     np.testing.assert_allclose(t * 1e6, [800, 900, 1000, 2900, 3000])
     np.testing.assert_allclose(v[:, 0], [0.5, 1.0, 1.5, -2.0, -4.0])
+
+
+def test_old_fifo_in_the_sensor_frame_is_refused(tmp_path: Path) -> None:
+    """Older PX4: a ``rotation`` field the consumer applied; samples not in the board frame."""
+    from tests.foreign_logs import ULOG_TOPICS
+
+    old = {"sensor_gyro_fifo": [*ULOG_TOPICS["sensor_gyro_fifo"], ("uint8_t", "rotation")]}
+    rows = _fifo_rows(DEV_A, GYRO_SCALE, np.zeros((400, 3), dtype=int), 1_000_000)
+    acc = _fifo_rows(ACC_A, ACC_SCALE, np.tile([0, 0, -8192], (400, 1)), 1_000_000)
+    for rotation, name in ((4, "yaw180.ulg"), (0, "none.ulg")):  # 4: ROTATION_YAW_180
+        for r in rows:
+            r["rotation"] = rotation
+        path = tmp_path / name
+        write_ulog(path, [("sensor_gyro_fifo", 0, rows), ("sensor_accel_fifo", 0, acc)], fields=old)
+        if rotation:
+            with pytest.raises(LogFormatError, match="rotation 4 not applied.*--topic sensor_gyro"):
+                read_any(path)
+        else:
+            assert len(read_any(path)) == 400

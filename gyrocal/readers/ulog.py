@@ -23,7 +23,9 @@ Which fields, and what they hold (PX4 msg/SensorGyro.msg, SensorAccel.msg, Senso
   sample n is at ``timestamp_sample - (samples - 1 - n) * dt``. No temperature: it comes from
   sensor_gyro of the same ``device_id``, interpolated. The accel FIFO of the same chip (same
   bus, address: ``device_id & 0xFFFF``) is expanded likewise and interpolated onto the gyro's
-  times. Read by default when logged (``--topic sensor_gyro`` reads the averages instead).
+  times. Read by default when logged (``--topic sensor_gyro`` reads the averages instead). Older
+  PX4 versions left the FIFO samples in the sensor's frame with a ``rotation`` field for the
+  consumer (VehicleAngularVelocity) to apply: such a log is refused unless the rotation is 0.
 
 Accel is interpolated onto the gyro's sample times; gyro samples outside the accel's time span are
 dropped and counted as ``no_accel``. Time is ``timestamp_sample`` (else ``timestamp``) in s since boot.
@@ -93,6 +95,12 @@ def _same_chip(ulog: Any, name: str, device_id: int) -> Any:
 def _read_fifo(ulog: Any, gyro_fifo: Any, inst: int, path: str) -> LogData:
     """sensor_gyro_fifo of one instance, with its chip's accel FIFO and sensor_gyro temperature."""
     dev = int(gyro_fifo.data["device_id"][0])
+    for d in (gyro_fifo, _same_chip(ulog, "sensor_accel_fifo", dev)):
+        if d is not None and "rotation" in d.data and np.any(np.asarray(d.data["rotation"]) != 0):
+            rot = int(np.max(d.data["rotation"]))
+            raise LogFormatError(f"{path}: {d.name}[{d.multi_id}] holds samples in the sensor's own frame "
+                                 f"(rotation {rot} not applied, as older PX4 left it); read the board-frame "
+                                 "averages with --topic sensor_gyro")
     tg, g, bad_g = expand_fifo(gyro_fifo)
     warnings: list[str] = []
     dropped = {"bad_fifo_messages": bad_g} if bad_g else {}
