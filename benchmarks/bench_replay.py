@@ -180,10 +180,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _print_blf(b: dict) -> None:
+    ref = (f"; frame by frame with can.LogReader: {b['reference_samples_per_s']:,} samples/s; same samples: "
+           f"{b['same_as_reference']}") if "reference_samples_per_s" in b else ""
     print(f".blf read ({b['log_s'] / 60:g} min at 2 kHz, {b['frames']:,} frames): {b['samples_per_s']:,} "
-          f"samples/s ({b['samples_per_cpu_s']:,} per CPU-second); frame by frame with can.LogReader: "
-          f"{b.get('reference_samples_per_s', 0):,} samples/s; same samples: {b.get('same_as_reference')}",
-          file=sys.stderr, flush=True)
+          f"samples/s ({b['samples_per_cpu_s']:,} per CPU-second){ref}", file=sys.stderr, flush=True)
 
 
 def _blf_only(fig: dict, seconds: float, d: Path, out: str | None, reference: bool) -> int:
