@@ -8,9 +8,11 @@
    time spent generating the synthetic samples is measured apart and left out (``gen_s``).
    The target is 200,000 samples/s (100x real time at 2 kHz).
 2. CSV read: ``read_any`` on a CSV log of the same signal (10 minutes at 2 kHz; quick: 1 minute).
-3. python-can .blf read: ``read_any`` on a .blf written with ``can.Logger`` from the CAN codec's
-   frames (3 to 4 frames per sample; 2 minutes at 2 kHz; quick: 15 s), i.e. python-can's BLF
-   reader, our DBC decoder and the log assembly.
+3. python-can .blf read: ``read_any`` on a .blf written with python-can's ``can.Logger`` from the
+   CAN codec's frames (3 to 4 frames per sample; 2 minutes at 2 kHz, ``--blf-seconds`` for
+   longer; quick: 15 s), i.e. our BLF container reader, the bulk DBC decoding and the log
+   assembly. ``reference_samples_per_s``: the same file through ``can.LogReader`` and the decoder
+   frame by frame (``read_canlog(fast=False)``), which gives the same samples bit for bit.
 """
 
 from __future__ import annotations
@@ -102,10 +104,12 @@ def bench_csv(seconds: float, tmp: Path) -> dict:
             "samples_per_s": round(len(log) / dt), "samples_per_cpu_s": round(len(log) / cpu)}
 
 
-def bench_blf(seconds: float, tmp: Path) -> dict:
+def bench_blf(seconds: float, tmp: Path, reference: bool = True) -> dict:
     import can
 
     from gyrocal.protocol.can_codec import CanCodec
+    from gyrocal.readers import ReadOptions
+    from gyrocal.readers.canlog import read_canlog
 
     cols = SessionStream(TruthModel(), tumble(1.2, 0.4), RATE, seed=13, boot=0).chunk(int(seconds * RATE))
     codec = CanCodec()
@@ -124,20 +128,37 @@ def bench_blf(seconds: float, tmp: Path) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     log = read_any(path)
     dt, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"log_s": seconds, "samples": len(log), "frames": frames, "bytes": path.stat().st_size,
-            "seconds": round(dt, 2), "samples_per_s": round(len(log) / dt),
-            "samples_per_cpu_s": round(len(log) / cpu), "dropped": log.dropped}
+    out = {"log_s": seconds, "samples": len(log), "frames": frames, "bytes": path.stat().st_size,
+           "seconds": round(dt, 3), "samples_per_s": round(len(log) / dt),
+           "samples_per_cpu_s": round(len(log) / cpu), "dropped": log.dropped}
+    if reference:
+        t0 = time.perf_counter()
+        ref = read_canlog(str(path), ReadOptions(), fast=False)
+        dt = time.perf_counter() - t0
+        out["reference_seconds"] = round(dt, 2)
+        out["reference_samples_per_s"] = round(len(ref) / dt)
+        out["same_as_reference"] = all(np.array_equal(ref[c], log[c]) for c in ref.columns)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short logs (5 min replay, 1 min CSV, 15 s .blf)")
     ap.add_argument("--json", metavar="OUT.json", help="write the figures here ('-' = stdout)")
+    ap.add_argument("--blf-seconds", type=float, metavar="S",
+                    help="length of the .blf log (default 120; quick: 15); writing it with python-can "
+                         "takes about 1 min per 2 min of log")
+    ap.add_argument("--blf-only", action="store_true", help="only the .blf read")
+    ap.add_argument("--no-reference", action="store_true",
+                    help="skip the frame-by-frame can.LogReader reference read of the .blf")
     args = ap.parse_args(argv)
     replay_s, csv_s, blf_s = (300.0, 60.0, 15.0) if args.quick else (3600.0, 600.0, 120.0)
+    blf_s = args.blf_seconds or blf_s
     fig: dict = {"quick": args.quick, "cpus": os.cpu_count(), "load_average_1min": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
+        if args.blf_only:
+            return _blf_only(fig, blf_s, d, args.json, not args.no_reference)
         fig["replay"] = bench_replay(replay_s, d)
         fig["replay_chunk_4s"] = bench_replay(replay_s / (6 if not args.quick else 1), d, chunk_s=4.0)
         for key in ("replay", "replay_chunk_4s"):
@@ -150,17 +171,35 @@ def main(argv: list[str] | None = None) -> int:
         c = fig["csv_read"]
         print(f"CSV read: {c['samples_per_s']:,} samples/s ({c['samples_per_cpu_s']:,} per CPU-second)",
               file=sys.stderr, flush=True)
-        fig["blf_read"] = bench_blf(blf_s, d)
+        fig["blf_read"] = bench_blf(blf_s, d, not args.no_reference)
         fig["load_average_1min_end"] = os.getloadavg()[0]
         b = fig["blf_read"]
-        print(f".blf read: {b['samples_per_s']:,} samples/s ({b['samples_per_cpu_s']:,} per CPU-second)",
-              file=sys.stderr, flush=True)
-    text = json.dumps(fig, indent=1)
-    if args.json == "-":
-        print(text)
-    elif args.json:
-        Path(args.json).write_text(text + "\n", encoding="utf-8")
+        _print_blf(b)
+    _emit(fig, args.json)
     return 0
+
+
+def _print_blf(b: dict) -> None:
+    ref = (f"; frame by frame with can.LogReader: {b['reference_samples_per_s']:,} samples/s; same samples: "
+           f"{b['same_as_reference']}") if "reference_samples_per_s" in b else ""
+    print(f".blf read ({b['log_s'] / 60:g} min at 2 kHz, {b['frames']:,} frames): {b['samples_per_s']:,} "
+          f"samples/s ({b['samples_per_cpu_s']:,} per CPU-second){ref}", file=sys.stderr, flush=True)
+
+
+def _blf_only(fig: dict, seconds: float, d: Path, out: str | None, reference: bool) -> int:
+    fig["blf_read"] = bench_blf(seconds, d, reference)
+    fig["load_average_1min_end"] = os.getloadavg()[0]
+    _print_blf(fig["blf_read"])
+    _emit(fig, out)
+    return 0
+
+
+def _emit(fig: dict, out: str | None) -> None:
+    text = json.dumps(fig, indent=1)
+    if out == "-":
+        print(text)
+    elif out:
+        Path(out).write_text(text + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Writers of small foreign logs for the reader tests: ArduPilot DataFlash .bin and rosbag2.
+"""Writers of small foreign logs for the reader tests: ArduPilot DataFlash .bin, rosbag2, PX4 ULog.
 
 They write what the formats' own specifications say (DataFlash: FMT records then data records,
 each with the 0xA3 0x95 header; rosbag2 through rosbags' Writer), so the readers are checked
@@ -91,3 +91,56 @@ def write_rosbag1(path: Path, t_s: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s
                     angular_velocity=V3(x=g[0], y=g[1], z=g[2]), angular_velocity_covariance=z9,
                     linear_acceleration=V3(x=a[0], y=a[1], z=a[2]), linear_acceleration_covariance=z9)
             w.write(conn, ns, ts.serialize_ros1(m, Imu.__msgtype__))
+
+
+# ULog (PX4's log format, docs.px4.io "ULog File Format"): a 16-byte header, then messages of
+# {uint16 size, uint8 type, body}: 'B' flag bits, 'F' formats, 'A' subscriptions, 'D' data.
+_ULOG_TYPES = {"uint64_t": "Q", "uint32_t": "I", "int16_t": "h", "uint8_t": "B", "float": "f"}
+ULOG_TOPICS = {
+    "sensor_gyro_fifo": [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"),
+                         ("uint32_t", "device_id"), ("float", "dt"), ("float", "scale"), ("int16_t[32]", "x"),
+                         ("int16_t[32]", "y"), ("int16_t[32]", "z"), ("uint8_t", "samples")],
+    "sensor_gyro": [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+                    ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"),
+                    ("uint32_t", "error_count"), ("uint8_t[3]", "clip_counter"), ("uint8_t", "samples")],
+}
+ULOG_TOPICS["sensor_accel_fifo"] = ULOG_TOPICS["sensor_gyro_fifo"]
+ULOG_TOPICS["sensor_accel"] = ULOG_TOPICS["sensor_gyro"]
+
+
+def _ulog_msg(kind: str, body: bytes) -> bytes:
+    return struct.pack("<HB", len(body), ord(kind)) + body
+
+
+def _ulog_pack(fields: list[tuple[str, str]], row: dict) -> bytes:
+    out = b""
+    for ftype, name in fields:
+        base, _, n = ftype.partition("[")
+        code = _ULOG_TYPES[base]
+        if n:
+            out += struct.pack(f"<{int(n[:-1])}{code}", *row[name])
+        else:
+            out += struct.pack("<" + code, row[name])
+    return out
+
+
+def write_ulog(path: Path, instances: list[tuple[str, int, list[dict]]],
+               fields: dict[str, list[tuple[str, str]]] | None = None) -> None:
+    """A ULog file holding, for each (topic of ULOG_TOPICS, multi_id, rows), its messages; a row
+    gives every field (arrays as sequences); messages are written in time order. ``fields``
+    overrides a topic's field list (e.g. an older PX4's)."""
+    spec_of = {**ULOG_TOPICS, **(fields or {})}
+    out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0))
+    out += _ulog_msg("B", bytes(16) + struct.pack("<3Q", 0, 0, 0))
+    for name in sorted({t for t, _, _ in instances}):
+        spec = ";".join(f"{ftype} {fname}" for ftype, fname in spec_of[name]) + ";"
+        out += _ulog_msg("F", f"{name}:{spec}".encode())
+    data: list[tuple[int, int, bytes]] = []
+    for msg_id, (name, multi_id, rows) in enumerate(instances):
+        out += _ulog_msg("A", struct.pack("<BH", multi_id, msg_id) + name.encode())
+        for k, row in enumerate(rows):
+            body = struct.pack("<H", msg_id) + _ulog_pack(spec_of[name], row)
+            data.append((int(row["timestamp"]), msg_id * 10**9 + k, _ulog_msg("D", body)))
+    for _, _, msg in sorted(data):
+        out += msg
+    Path(path).write_bytes(bytes(out))

@@ -279,7 +279,7 @@ def test_convert_a_foreign_log_to_csv_and_back(tmp_path: Path, capsys: pytest.Ca
 
 
 @pytest.mark.parametrize("name", ["x.bin", "x.ulg", "x.blf", "x.asc", "x.log", "x.mcap", "x.db3", "x.bag",
-                                  "x.cap", "df.bin", "cut.blf", "cut.ulg"])
+                                  "x.cap", "df.bin", "cut.blf", "cut.ulg", "x.tlog", "cut.tlog"])
 def test_damaged_or_foreign_files_end_in_one_line_never_a_traceback(name: str, tmp_path: Path,
                                                                    capsys: pytest.CaptureFixture) -> None:
     rng = np.random.default_rng(sum(map(ord, name)))
@@ -288,8 +288,8 @@ def test_damaged_or_foreign_files_end_in_one_line_never_a_traceback(name: str, t
     if name == "df.bin":
         junk = b"\xa3\x95" + junk  # DataFlash's header, then garbage
     elif name.startswith("cut."):  # a real recording cut in the middle
-        src = DATA / ("sim_can/virtual_unit.blf" if name.endswith(".blf")
-                      else "px4_ulog/sample_log_small.ulg")
+        src = DATA / {"blf": "sim_can/virtual_unit.blf", "ulg": "px4_ulog/sample_log_small.ulg",
+                      "tlog": "ardusub_tlog/small.tlog"}[name.split(".")[-1]]
         junk = src.read_bytes()[: src.stat().st_size // 2]
     elif name in ("x.asc", "x.log"):
         junk = b"".join(b"line %d of something else\n" % i for i in range(50))

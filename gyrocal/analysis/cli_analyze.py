@@ -25,7 +25,7 @@ from gyrocal.readers import accounting, add_arguments, read_from_args
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", help="a log: CSV, .asc/.blf, .ulg, .bin, ... (docs/logformat.md)")
+    parser.add_argument("log", help="a log: CSV, .asc/.blf, .ulg, .bin, .tlog, ... (docs/logformat.md)")
     parser.add_argument("--json", metavar="OUT.json", help="write the result here ('-' = stdout)")
     parser.add_argument("--report", metavar="DIR", help="write report.md and PNG plots into DIR")
     parser.add_argument("--spec", metavar="PATH", help="where to write the extended model spec (YAML)")

@@ -1,6 +1,6 @@
 """``gyrocal fit LOG --method {lms,nlms,rls,batch} [--terms ...] [--all-samples] --json``.
 
-LOG is any format of docs/logformat.md (CSV, python-can logs, serial captures, .ulg, .bin, rosbag2).
+LOG is any format of docs/logformat.md (CSV, python-can logs, serial captures, .ulg, .bin, .tlog, rosbag2).
 
 - rls, nlms: one pass over the samples in time order, as the daemon learns on line;
 - batch: seed 000 eq. (4), rank-aware;
@@ -45,7 +45,8 @@ from gyrocal.readers import ReadOptions, accounting, add_arguments, read_any, re
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", metavar="LOG",
-                        help="CSV, python-can log, serial capture, .ulg, .bin, rosbag2 (docs/logformat.md)")
+                        help="CSV, python-can log, serial capture, .ulg, .bin, .tlog, rosbag2 "
+                             "(docs/logformat.md)")
     parser.add_argument("--method", choices=list(METHODS), default="rls", help="estimator (default rls)")
     parser.add_argument("--terms", nargs="+", metavar="TERM",
                         help="term names, e.g. 1 gx gy gz temp temp*dtemp (default: seed 000's 10 terms)")

@@ -141,6 +141,24 @@ class CanDecoder:
         st.frames += 1
         return handler(decode(data))
 
+    # -- bulk decoding (readers.canbulk) -------------------------------------------------------
+    def sample_state(self) -> tuple[int, int, int] | None:
+        """(last seq, last unit time [us], sample period [us]) when the next complete A, B, C
+        triple depends on nothing else: no partial sample, no pending anchor, a sample seen since
+        the switch-on. None otherwise: then only ``feed`` knows what the next frames do."""
+        if self._partials or self._anchor is not None or self._last_seq is None:
+            return None
+        return self._last_seq, self._last_t_us, self._dt_us
+
+    def advance_samples(self, last_seq: int, last_t_us: int, dt_us: int, parts: int, anchors: int) -> None:
+        """Take the state ``feed`` would have after a bulk decoder decoded, from ``sample_state``,
+        consecutive in-order samples: ``parts`` SAMPLE_A/B/C frames and ``anchors`` SAMPLE_TIME
+        frames (each 8 bytes, each anchor used by the sample after it)."""
+        self._last_seq, self._last_t_us, self._dt_us = last_seq, last_t_us, dt_us
+        self._tick += parts
+        self.stats.frames += parts + anchors
+        self.stats.bytes += 8 * (parts + anchors)
+
     # -- samples -------------------------------------------------------------------------------
     def _on_sample_time(self, raw: dict[str, int]) -> list[object]:
         self._anchor = (raw["SEQ"], raw["T_US"])

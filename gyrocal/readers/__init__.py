@@ -6,8 +6,10 @@ finds interfaces), so ``gyrocal fit run.csv`` never imports pyulog, pymavlink or
 - ``csv``: our CSV log, or any CSV with ``--columns`` (a column map) and ``--units``;
 - ``can``: a python-can log (.asc, .blf, candump .log, .trc, .mf4, ...) decoded with our DBC;
 - ``serial``: a capture of the serial protocol's raw bytes (.cap, .raw, .serial);
-- ``ulog``: PX4 .ulg (sensor_gyro + sensor_accel of one instance, or sensor_combined);
+- ``ulog``: PX4 .ulg (sensor_gyro_fifo + sensor_accel_fifo, or sensor_gyro + sensor_accel, of one
+  instance; or sensor_combined);
 - ``dataflash``: ArduPilot .bin (IMU messages of one instance);
+- ``tlog``: MAVLink telemetry log .tlog (HIGHRES_IMU > SCALED_IMU(n) > RAW_IMU of one instance);
 - ``rosbag``: rosbag2 (.mcap, .db3 or its directory) or ROS 1 .bag sensor_msgs/msg/Imu.
 
 Each reader converts to deg/s, g, degC and s, and counts what it dropped, by reason, in
@@ -31,6 +33,7 @@ READERS: dict[str, tuple[str, str]] = {
     "serial": ("gyrocal.readers.serialcap", "read_serial_capture"),
     "ulog": ("gyrocal.readers.ulog", "read_ulog"),
     "dataflash": ("gyrocal.readers.dataflash", "read_dataflash"),
+    "tlog": ("gyrocal.readers.tlog", "read_tlog"),
     "rosbag": ("gyrocal.readers.rosbag", "read_rosbag"),
 }
 """Format kind -> (module, function(path, options) -> LogData)."""
@@ -41,6 +44,7 @@ EXTENSIONS: dict[str, str] = {
     ".cap": "serial", ".raw": "serial", ".serial": "serial",
     ".ulg": "ulog",
     ".bin": "dataflash",
+    ".tlog": "tlog",
     ".mcap": "rosbag", ".db3": "rosbag", ".bag": "rosbag",
 }
 """File extension -> kind; ``--format`` overrides. A .bin that does not start with DataFlash's
@@ -54,8 +58,8 @@ class ReadOptions:
     """What a reader may need beyond the path (all optional).
 
     columns: our column name -> the file's (CSV); units: quantity -> unit (CSV);
-    instance: which IMU of several (ULog, DataFlash; default 0); topic: which topic or message
-    (ULog: sensor_gyro or sensor_combined; ROS: the Imu topic); dbc: the CAN database.
+    instance: which IMU of several (ULog, DataFlash, .tlog; default 0); topic: which topic or message
+    (ULog: sensor_gyro_fifo, sensor_gyro or sensor_combined; ROS: the Imu topic); dbc: the CAN database.
     """
 
     columns: dict[str, str] = field(default_factory=dict)
@@ -122,9 +126,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the units the log holds, e.g. gyro=rad/s,accel=m/s^2,temp=K,time=ms "
                         "(default: its '# units:' line, else deg/s, g, degC, s)")
     g.add_argument("--instance", type=int, default=0, metavar="N",
-                   help="which IMU of several in a .ulg or .bin (default 0)")
+                   help="which IMU of several in a .ulg, .bin or .tlog (default 0)")
     g.add_argument("--topic", metavar="NAME",
-                   help="ULog topic (sensor_gyro or sensor_combined) or ROS Imu topic (default: found)")
+                   help="ULog topic (sensor_gyro_fifo, sensor_gyro or sensor_combined) or ROS Imu topic "
+                        "(default: found)")
     g.add_argument("--dbc", metavar="FILE.dbc", help="CAN database for python-can logs (default: shipped)")
 
 

@@ -6,7 +6,8 @@ switch-ons (a HELLO with a new serial or boot count, or a sample counter that go
 the unit's time, and the first HELLO and COEFF_REPORT go into the metadata (the report whole:
 ``applied_coeffs_dps`` as JSON, so a converted CSV still says how its output was compensated).
 The decoder's counters (CRC failures, garbage bytes, seq gaps, ...) are the reader's ``dropped``
-accounting.
+accounting. Consecutive samples may also come as one SAMPLE_DTYPE block (``readers.canbulk``):
+the same rows as its samples one by one.
 """
 
 from __future__ import annotations
@@ -38,6 +39,24 @@ def messages_to_log(messages: Iterable[Any], source: str, stats: Mapping[str, in
     in_session = 0
     nonfinite = 0
     for m in messages:
+        if isinstance(m, np.ndarray):  # a bulk-decoded block: in-order seq, finite values
+            if not m.size:
+                continue
+            if session < 0:
+                session = 0
+            elif last_seq is not None and int(m["seq"][0]) + SEQ_BACK < last_seq:
+                session, in_session = session + 1, 0
+            last_seq = int(m["seq"][-1])
+            if rows:
+                chunks.append(np.asarray(rows, dtype=np.float64))
+                rows = []
+            block = np.empty((m.size, len(FIELDS)), dtype=np.float64)
+            for i, f in enumerate(FIELDS[:-1]):
+                block[:, i] = m[f]
+            block[:, -1] = session
+            chunks.append(block)
+            in_session += m.size
+            continue
         if type(m) is Sample:
             if session < 0:
                 session = 0

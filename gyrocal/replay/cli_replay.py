@@ -7,7 +7,7 @@ A push is decided on the data as the daemon sees it: after it, the recording's o
 re-compensated with the pushed set, as the unit would have applied it (gyrocal/replay/unit.py).
 
 LOG is any format of docs/logformat.md: a python-can log or a serial capture of the link (with
-the unit's HELLO and COEFF_REPORT), or a sample log (CSV, .ulg, .bin, rosbag2), whose sessions
+the unit's HELLO and COEFF_REPORT), or a sample log (CSV, .ulg, .bin, .tlog, rosbag2), whose sessions
 each get a HELLO and whose unit is taken to hold no calibration.
 """
 
@@ -27,7 +27,7 @@ from gyrocal.replay.source import open_recording
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", metavar="LOG",
-                        help="a recording: .asc/.blf/.log, .cap, CSV, .ulg, .bin, rosbag2 "
+                        help="a recording: .asc/.blf/.log, .cap, CSV, .ulg, .bin, .tlog, rosbag2 "
                              "(docs/logformat.md)")
     parser.add_argument("--config", metavar="FILE.yaml",
                         help="daemon config whose estimator/validation/push/still settings to use "

@@ -1,7 +1,7 @@
 """A recording as the unit's message stream: ``("msg", message)`` and ``("samples", block)`` events.
 
 Link recordings (python-can logs, serial byte captures) hold the unit's own messages: they go
-through the live link's decoders, in order. Any other log (CSV, .ulg, .bin, rosbag2) holds samples
+through the live link's decoders, in order. Any other log (CSV, .ulg, .bin, .tlog, rosbag2) holds samples
 only: each session becomes a HELLO (serial, firmware and boot count from the log's metadata when it
 has them) followed by its samples, with ``seq`` counting from 0 at the switch-on as a unit's does;
 the set the unit held comes from the ``applied_*`` metadata, else the unit held none.
@@ -75,6 +75,13 @@ class Recording:
         rec = self._messages()
         pending: list[Sample] = []
         for m in rec.messages():
+            if isinstance(m, np.ndarray):  # a block decoded in bulk (readers.canbulk)
+                if pending:
+                    yield "samples", samples_to_block(pending)
+                    pending = []
+                for i in range(0, m.size, BLOCK):
+                    yield "samples", m[i:i + BLOCK]
+                continue
             if type(m) is Sample:
                 pending.append(m)
                 if len(pending) >= BLOCK:
