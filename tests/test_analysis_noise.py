@@ -186,3 +186,24 @@ def test_gls_gram_by_one_segmented_sweep_equals_the_full_solve() -> None:
             assert np.allclose(g.gram(x), ref, rtol=1e-10, atol=1e-12)
     finally:
         gls.SEGMENT_ROWS = old
+
+
+def test_a_broad_resonance_is_found_where_a_low_pass_and_white_noise_show_none() -> None:
+    """A 5 Hz bump (half width 1 Hz, 2 sigma) on x of a null tumble log is found near 5 Hz with about
+    its width; a first-order low-pass (y, the coloured background) and white noise (z) show no bump."""
+    from gyrocal.analysis.baseline import build_problem, lstsq
+    from gyrocal.analysis.resonance import find_resonance
+    from gyrocal.analysis.segments import usable_samples
+    from gyrocal.model.terms import derived_columns
+
+    cols, _ = generate(5, causes=[])
+    n, rng = cols["t"].size, np.random.default_rng(5)
+    cols["wx"] = cols["wx"] + NoiseModel(25.0, 0.0, [], 0.0, lines=[(5.0, 1.0, 0.004**2)]).simulate(n, rng)
+    cols["wy"] = cols["wy"] + NoiseModel(25.0, 0.0, [(0.08, 0.003**2)], 0.0).simulate(n, rng)
+    c = derived_columns(cols)
+    prob = build_problem(c, usable_samples(c))
+    beta, _ = lstsq(prob.base, prob.y)
+    x, y, z = find_resonance(prob, prob.y - prob.base @ beta)
+    assert y == () and z == ()
+    (f0, hw), = x
+    assert f0 == pytest.approx(5.0, abs=0.4) and 0.5 <= hw <= 2.0
