@@ -129,7 +129,7 @@ def select_axis(
         if progress:
             progress(f"axis {AXES[axis]}: {c.cause} explains {frac:.1%} (p={p:.2g})")
     walk = next((c for c in cands if c.cause == "random_walk"), None)
-    model = lr.model_for([c.cause for c in chosen])
+    model = lr.point_model_for([c.cause for c in chosen])
     if walk is not None and (model.slow or model.walk_q > 0):
         r_new = heldout_walk(prob, model, axis, chosen)
         cmp = compare(prob, r_cur, r_new, tau_s)
