@@ -207,3 +207,31 @@ def test_a_broad_resonance_is_found_where_a_low_pass_and_white_noise_show_none()
     assert y == () and z == ()
     (f0, hw), = x
     assert f0 == pytest.approx(5.0, abs=0.4) and 0.5 <= hw <= 2.0
+
+
+@pytest.mark.parametrize("seed, kind, cause, axis", [(30022, "flicker", "temperature", 0),
+                                                      (30098, "flicker", "temperature_rate", 1)])
+def test_a_covariate_does_not_take_a_flicker_nulls_wander_through_the_error_model(
+        seed: int, kind: str, cause: str, axis: int) -> None:
+    """Two feasible-GLS rounds let a once-per-session temperature rise take a 300 s flicker member
+    and named it at p = 1e-5 / 4e-4 (the true error model gives 0.07 / 0.015); one round does not."""
+    from gyrocal.analysis.baseline import build_problem
+    from gyrocal.analysis.candidates import all_candidates
+    from gyrocal.analysis.holdout import ALPHA
+    from gyrocal.analysis.lrtest import build_axis_lr
+    from gyrocal.analysis.segments import usable_samples
+    from gyrocal.model.terms import derived_columns
+
+    cols, _ = generate(seed, causes=[])
+    c = derived_columns(add_background(cols, kind, seed))
+    prob = build_problem(c, usable_samples(c))
+    lr = build_axis_lr(prob, all_candidates(prob), axis)
+    assert lr.test([], cause)[1] > ALPHA
+
+
+def test_the_walk_is_not_named_on_a_quantised_white_null() -> None:
+    """The walk's smoother with the test's upper-limit error model named random_walk on this
+    quantised white-noise null (seed 30028, z, p = 7e-5); with the point-estimate model, nothing."""
+    cols, _ = generate(30028, causes=[])
+    res = analyze(LogData(add_background(cols, "quantised", 30028), {}, [], "q")).result
+    assert res["findings"] == []
