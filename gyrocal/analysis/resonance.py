@@ -40,7 +40,7 @@ def find_resonance(prob: Problem, resid: np.ndarray) -> list[tuple[tuple[float, 
     f, p = spectrum(prob, grids)
     df = float(f[1] - f[0])
     w = max(1, int(round(SMOOTH_HZ / df)))
-    sm = np.apply_along_axis(lambda c: np.convolve(c, np.ones(w) / w, mode="same"), 0, p)
+    sm = _boxcar(p, w)
     top = 0.45 * prob.rate_hz / 1.5
     band = np.flatnonzero((f >= MIN_HZ) & (f <= top))
     out: list[tuple[tuple[float, float], ...]] = []
@@ -61,3 +61,13 @@ def find_resonance(prob: Problem, resid: np.ndarray) -> list[tuple[tuple[float, 
         hw = float(np.sqrt(np.sum((f[win] - c) ** 2 * ex) / np.sum(ex)))
         out.append(((round(c, 3), round(max(hw, df), 3)),))
     return out
+
+
+def _boxcar(p: np.ndarray, w: int) -> np.ndarray:
+    """Centred moving average of p (F, K) over w bins along axis 0, by cumulative sums (O(F), where
+    np.convolve is O(F w): a 3-hour 100 Hz log has 2^19 bins and w = 10,000)."""
+    c = np.vstack([np.zeros((1, p.shape[1])), np.cumsum(p, axis=0)])
+    n = p.shape[0]
+    lo = np.clip(np.arange(n) - w // 2, 0, n)
+    hi = np.clip(np.arange(n) + (w - 1) // 2 + 1, 0, n)
+    return (c[hi] - c[lo]) / w
