@@ -186,3 +186,52 @@ def test_gls_gram_by_one_segmented_sweep_equals_the_full_solve() -> None:
             assert np.allclose(g.gram(x), ref, rtol=1e-10, atol=1e-12)
     finally:
         gls.SEGMENT_ROWS = old
+
+
+def test_a_broad_resonance_is_found_where_a_low_pass_and_white_noise_show_none() -> None:
+    """A 5 Hz bump (half width 1 Hz, 2 sigma) on x of a null tumble log is found near 5 Hz with about
+    its width; a first-order low-pass (y, the coloured background) and white noise (z) show no bump."""
+    from gyrocal.analysis.baseline import build_problem, lstsq
+    from gyrocal.analysis.resonance import find_resonance
+    from gyrocal.analysis.segments import usable_samples
+    from gyrocal.model.terms import derived_columns
+
+    cols, _ = generate(5, causes=[])
+    n, rng = cols["t"].size, np.random.default_rng(5)
+    cols["wx"] = cols["wx"] + NoiseModel(25.0, 0.0, [], 0.0, lines=[(5.0, 1.0, 0.004**2)]).simulate(n, rng)
+    cols["wy"] = cols["wy"] + NoiseModel(25.0, 0.0, [(0.08, 0.003**2)], 0.0).simulate(n, rng)
+    c = derived_columns(cols)
+    prob = build_problem(c, usable_samples(c))
+    beta, _ = lstsq(prob.base, prob.y)
+    x, y, z = find_resonance(prob, prob.y - prob.base @ beta)
+    assert y == () and z == ()
+    (f0, hw), = x
+    assert f0 == pytest.approx(5.0, abs=0.4) and 0.5 <= hw <= 2.0
+
+
+@pytest.mark.parametrize("seed, kind, cause, axis", [(30022, "flicker", "temperature", 0),
+                                                      (30098, "flicker", "temperature_rate", 1)])
+def test_a_covariate_does_not_take_a_flicker_nulls_wander_through_the_error_model(
+        seed: int, kind: str, cause: str, axis: int) -> None:
+    """Two feasible-GLS rounds let a once-per-session temperature rise take a 300 s flicker member
+    and named it at p = 1e-5 / 4e-4 (the true error model gives 0.07 / 0.015); one round does not."""
+    from gyrocal.analysis.baseline import build_problem
+    from gyrocal.analysis.candidates import all_candidates
+    from gyrocal.analysis.holdout import ALPHA
+    from gyrocal.analysis.lrtest import build_axis_lr
+    from gyrocal.analysis.segments import usable_samples
+    from gyrocal.model.terms import derived_columns
+
+    cols, _ = generate(seed, causes=[])
+    c = derived_columns(add_background(cols, kind, seed))
+    prob = build_problem(c, usable_samples(c))
+    lr = build_axis_lr(prob, all_candidates(prob), axis)
+    assert lr.test([], cause)[1] > ALPHA
+
+
+def test_the_walk_is_not_named_on_a_quantised_white_null() -> None:
+    """The walk's smoother with the test's upper-limit error model named random_walk on this
+    quantised white-noise null (seed 30028, z, p = 7e-5); with the point-estimate model, nothing."""
+    cols, _ = generate(30028, causes=[])
+    res = analyze(LogData(add_background(cols, "quantised", 30028), {}, [], "q")).result
+    assert res["findings"] == []

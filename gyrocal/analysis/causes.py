@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gyrocal.analysis.baseline import Problem, lstsq
-from gyrocal.analysis.candidates import Candidate
+from gyrocal.analysis.candidates import COVARIATE_CAUSES, Candidate
 from gyrocal.analysis.holdout import (
     ALPHA,
     MIN_FRACTION,
@@ -108,7 +108,20 @@ def select_axis(
                                   "lr": round(s[4], 2)} for s in scored}
         sig = [s for s in scored if s[2] < ALPHA and s[1] >= MIN_FRACTION_OF_BASELINE]
         if not sig:
-            break
+            pair = _joint_pair(lr, [s.cause for s in chosen], [s[0] for s in scored])
+            if pair is None:
+                break
+            p_pair = lr.test_joint([s.cause for s in chosen], tuple(c.cause for c in pair))[1]
+            for c in pair:
+                r_new = heldout([*chosen, c])
+                tau_c = c.tau_s if c.tau_s is not None else tau_s
+                frac = (_ms(prob, r_cur, tau_c) - _ms(prob, r_new, tau_c)) / _ms(prob, res.r_base, tau_c)
+                chosen.append(c)
+                res.steps.append(Step(c.cause, float(frac), p_pair, int(prob.block.max()) + 1))
+                r_cur = r_new
+                if progress:
+                    progress(f"axis {AXES[axis]}: {c.cause} (jointly) explains {frac:.1%} (p={p_pair:.2g})")
+            continue
         c, frac, p, r_new, _ = max(sig, key=lambda s: s[1])
         chosen.append(c)
         res.steps.append(Step(c.cause, float(frac), p, int(prob.block.max()) + 1))
@@ -116,7 +129,7 @@ def select_axis(
         if progress:
             progress(f"axis {AXES[axis]}: {c.cause} explains {frac:.1%} (p={p:.2g})")
     walk = next((c for c in cands if c.cause == "random_walk"), None)
-    model = lr.model_for([c.cause for c in chosen])
+    model = lr.point_model_for([c.cause for c in chosen])
     if walk is not None and (model.slow or model.walk_q > 0):
         r_new = heldout_walk(prob, model, axis, chosen)
         cmp = compare(prob, r_cur, r_new, tau_s)
@@ -135,6 +148,21 @@ def select_axis(
     res.r_ext = r_cur
     res.lr = lr
     return res
+
+
+def _joint_pair(lr: AxisLR, chosen: list[str], left: list[Candidate]) -> tuple[Candidate, Candidate] | None:
+    """Two covariate causes that pass together when neither passes alone (issue 12: weigh the
+    covariates jointly): the pair's joint test at ALPHA / the number of pairs tried, and each one
+    given the other at ALPHA, so neither rides on its partner. The best pair by joint p, or None."""
+    covs = [c for c in left if c.cause in COVARIATE_CAUSES and len(chosen) + 2 <= MAX_CAUSES_PER_AXIS]
+    pairs = [(a, b) for i, a in enumerate(covs) for b in covs[i + 1:]]
+    best, best_p = None, ALPHA / max(len(pairs), 1)
+    for a, b in pairs:
+        p = lr.test_joint(chosen, (a.cause, b.cause))[1]
+        if p < best_p and lr.test([*chosen, b.cause], a.cause)[1] < ALPHA \
+                and lr.test([*chosen, a.cause], b.cause)[1] < ALPHA:
+            best, best_p = (a, b), p
+    return best
 
 
 def fit_full(prob: Problem, axis: int, chosen: list[Candidate], lr: AxisLR | None = None

@@ -32,6 +32,8 @@ FAST_SAMPLES = 4.0
 FAST_TAUS_SAMPLES = (0.5, 1.0, 2.0, 4.0)
 SLOW_STEP = 4.0
 """Ratio between successive slow (flicker-bank) correlation times."""
+BROAD_HALF_WIDTH_HZ = 0.5
+"""A line this wide or wider is broadband colour (counted in the per-sample level), not a narrow line."""
 
 
 @dataclass
@@ -45,9 +47,11 @@ class NoiseModel:
     misfit: float = 0.0  # weighted squared misfit of the Allan fit (about one per octave when right)
     lines: list[tuple[float, float, float]] = field(default_factory=list)
     """Narrow-band noise (a resonance whose frequency wanders, e.g. sunsided z at 31.4 Hz): (centre
-    [Hz], half width [Hz], variance [(deg/s)^2]) of a second-order (AR(2)) process. Part of the
-    colour; not in ``sample_sd`` (the broadband per-sample level) nor in the test's model (it has no
-    power at the low frequencies the regression causes live at)."""
+    [Hz], half width [Hz], variance [(deg/s)^2]) of a second-order (AR(2)) process; also a broad
+    resonance (``resonance.find_resonance``: the 10 Hz bump of the hand-turned MPU logs). Part of the
+    colour; not in the test's model (it has no power at the low frequencies the regression causes
+    live at). A line at least ``BROAD_HALF_WIDTH_HZ`` wide is part of ``sample_sd`` (the broadband
+    per-sample level); a narrow one is not."""
 
     def phi(self, tau_s: float) -> float:
         return float(np.exp(-1.0 / (self.rate_hz * tau_s)))
@@ -62,8 +66,9 @@ class NoiseModel:
 
     @property
     def sample_sd(self) -> float:
-        """Per-sample SD of the high-frequency noise (white + colour) [deg/s]."""
-        return float(np.sqrt(self.white_var + sum(v for _, v in self.fast)))
+        """Per-sample SD of the high-frequency noise (white + colour + broad resonances) [deg/s]."""
+        broad = sum(v for _, b, v in self.lines if b >= BROAD_HALF_WIDTH_HZ)
+        return float(np.sqrt(self.white_var + sum(v for _, v in self.fast) + broad))
 
     @property
     def lowfreq_white_var(self) -> float:
