@@ -62,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.daemon import refine
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.capabilities import PROTOCOL, Projection, UnitCapabilities, project
 from gyrocal.daemon.learner import Learner
@@ -175,6 +176,11 @@ class Session(RecoveryMixin):
         self.samples = 0
         self.still_samples = 0
         self.poses: list[np.ndarray] = []  # block-mean terms (P,) of the distinct poses seen
+        # the temperature range [degC] of this session's still samples (None: the model has no temp)
+        self._has_temp = any(a.split("^")[0] == "temp" for a in self.spec.atoms)
+        self.temp_seen: tuple[float, float] | None = None
+        self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
+        self._gate_result: refine.GateResult | None = None
         self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
         self.prediction: dict[str, Any] = {}
         self._bias_pushed = False
@@ -255,6 +261,13 @@ class Session(RecoveryMixin):
         raw = out + self._compensation(samples["seq"], cols, phi)
         blocks, train = self.acc.feed(raw, out, phi, still)
         self.still_samples += int(still.sum())
+        if self._has_temp and still.any():
+            t = samples["temp"][still]
+            t = t[np.isfinite(t)]
+            if t.size:
+                lo, hi = float(t.min()), float(t.max())
+                self.temp_seen = (lo, hi) if self.temp_seen is None else \
+                    (min(lo, self.temp_seen[0]), max(hi, self.temp_seen[1]))
         if train.any() and self.state is not State.PUSHING:
             self.learner.update_many(phi[train], raw[train], samples["t"][train])
         self.holdout.add([b for b in blocks if b.holdout])
@@ -262,13 +275,17 @@ class Session(RecoveryMixin):
         self._note_poses(blocks, cols)
 
     def _note_poses(self, blocks: list[Any], cols: dict[str, np.ndarray]) -> None:
-        """Remember the distinct poses seen (block-mean terms), for the predicted drift."""
+        """Remember the distinct poses seen (block-mean terms), for the predicted drift.
+
+        Past ``MAX_POSES`` the older of the two closest poses goes (distances scaled by each term's
+        span over the poses), so the memory keeps covering everything seen: a warm-up's first
+        degrees stay among the poses at its end (dropping the oldest kept only the last 32 s)."""
         self._context = {k: float(np.mean(v)) for k, v in cols.items() if k not in ("ax", "ay", "az")}
         for b in blocks:
             if all(np.max(np.abs(b.phi - p)) > 0.05 for p in self.poses):
                 self.poses.append(b.phi.copy())
                 if len(self.poses) > self.MAX_POSES:
-                    self.poses.pop(0)
+                    self.poses.pop(_closest_older(np.array(self.poses)))
 
     def _sphere_phi(self) -> np.ndarray:
         n = SPHERE_G.shape[0]
@@ -299,12 +316,44 @@ class Session(RecoveryMixin):
         # the bias stage is judged on what it learns (the bias); the stored terms' error is reported
         left, removes = p.get("gate", p["left"]), p["removes"]
         target = self.cfg.push["target_drift_dph"] / DPH
-        cut = self.BIAS_MIN_CUT if p.get("stage") == "bias" else self.cfg.push["min_cut"]
-        ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
+        bias = p.get("stage") == "bias"
+        cut = self.BIAS_MIN_CUT if bias else self.cfg.push["min_cut"]
+        # a refinement of a set this daemon pushed is judged per axis (refine.py); the bias stage and
+        # a unit set the daemon knows nothing of: every axis must gain
+        held_left, held_range = (None, None) if bias else self._held_info()
+        wide = refine.widened(held_range, self.temp_seen)
+        g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses; it must be below "
                f"{self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
                "the set removes")
-        return ok, why
+        if held_left is not None:
+            why += (f" on some axis (or the range seen {_range(self.temp_seen)} widen the held set's "
+                    f"{_range(held_range)} degC), leaving no axis worse than the held set's "
+                    f"{_dph(held_left)} deg/h")
+        return g.ok, why
+
+    def _held_info(self) -> tuple[np.ndarray | None, tuple[float, float] | None]:
+        """The held set's predicted drift left [deg/s] (3,) and temperature range [degC] as its store
+        record has them; (None, None) for a set this daemon has no acked record of."""
+        a = self.applied
+        if a is None or a.version <= 0:
+            return None, None
+        if a.version not in self._held_cache:
+            try:
+                rec = self.store.get(self.hello.serial, a.version)
+            except Exception:
+                rec = None
+            left: np.ndarray | None = None
+            rng: tuple[float, float] | None = None
+            if rec is not None and rec.push.get("status") == "acked":
+                pred = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("left") or {}
+                if all(isinstance(pred.get(k), int | float) for k in "xyz"):
+                    left = np.array([pred[k] for k in "xyz"], dtype=float) / DPH
+                r = (rec.stats or {}).get("temp_range_c")
+                if isinstance(r, list) and len(r) == 2 and all(isinstance(v, int | float) for v in r):
+                    rng = (float(r[0]), float(r[1]))
+            self._held_cache[a.version] = (left, rng)
+        return self._held_cache[a.version]
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray],
                       phi: np.ndarray | None = None) -> np.ndarray:
@@ -434,9 +483,30 @@ class Session(RecoveryMixin):
             "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
         }
-        if not new2 <= need * old2:
+        g = self._gate_result
+        refining = stage == "full" and g is not None and self._held_info()[0] is not None
+        worse = ~refine.axes_not_worse(rms_old, rms_new) if refining else np.zeros(3, dtype=bool)
+        # a refinement is not worse on any axis, and improves by min_improvement on the three axes
+        # together or on one, or widens the range: a gain in TMIN..TMAX the held-out residual cannot
+        # show (the link reconstructs the unit's output with the held set unclamped)
+        enough = new2 <= need * old2
+        if refining and g is not None:
+            one_axis = bool(np.any(rms_new <= (1.0 - self.cfg.validation["min_improvement"]) * rms_old))
+            enough = enough or one_axis or g.widened
+        worse_axes = [a for a, w in zip("xyz", worse, strict=True) if w]
+        if refining and g is not None:
+            gains = [a for a, w in zip("xyz", g.gains, strict=True) if w]
+            self.last_validation["refinement"] = {"widened": g.widened, "worse_axes": worse_axes,
+                                                  "gains": gains}
+        if worse_axes:
+            why = (f"validation: new set's held-out RMS {_dph(rms_new)} deg/h is worse than the held set's "
+                   f"{_dph(rms_old)} deg/h on axis {'/'.join(worse_axes)}; not pushing")
+        elif not enough:
             why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
                    f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
+        else:
+            why = ""
+        if why:
             self.last_validation["passed"] = False
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             if stage == "bias":
@@ -502,12 +572,24 @@ class Session(RecoveryMixin):
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
                    "predicted_drift_dph": self._push_prediction,
-                   "warm_started_from": self.warm_started_from},
+                   "warm_started_from": self.warm_started_from,
+                   # the range the set was learnt over (this and earlier switch-ons' merged) and the
+                   # information on its temperature terms for the next switch-on (learner.py)
+                   "temp_range_c": self.temp_range(),
+                   "temp_information": self.learner.temp_information()},
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
             push={"status": "pending"},
         )
         rec = self.store.add(rec, min_version=self.version_floor())
         return {"version": rec.version}
+
+    def temp_range(self) -> list[float] | None:
+        """The temperature range [degC] the learnt set covers: this session's still samples, merged with
+        the range of the earlier switch-ons whose information the learner holds (None: no temp term)."""
+        rngs = [r for r in (self.temp_seen, self.learner.prior_range) if r is not None]
+        if not rngs:
+            return None
+        return [min(r[0] for r in rngs), max(r[1] for r in rngs)]
 
     def version_floor(self) -> int:
         """The lowest version a new set may take: above the one the unit holds (it may not be ours)."""
@@ -575,7 +657,8 @@ class Session(RecoveryMixin):
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
             self.monitor.clear()
-            self.holdout.clear()
+            # the held-out blocks are kept: a refinement is validated over the whole range seen (their
+            # raw rate does not depend on the set the unit applied)
             self.state = State.MONITORING
             self.reason = f"monitoring v{version}"
             self._next_validation_at = 2 * self.learner.samples + 1
@@ -656,6 +739,20 @@ class Session(RecoveryMixin):
             "predicted_drift_dph": {k: (_xyz_dph(v) if k in PREDICTED_KEYS else v)
                                     for k, v in self.prediction.items() if k != "gate"},
         }
+
+
+def _closest_older(poses: np.ndarray) -> int:
+    """Index of the older pose of the closest pair in (K, P) ``poses`` (terms scaled by their span)."""
+    span = np.ptp(poses, axis=0)
+    z = poses / np.where(span > 0, span, 1.0)
+    d = np.linalg.norm(z[:, None, :] - z[None, :, :], axis=2)
+    d[np.diag_indices_from(d)] = np.inf
+    i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+    return int(min(i, j))
+
+
+def _range(r: tuple[float, float] | None) -> str:
+    return "?" if r is None else f"{r[0]:.1f}..{r[1]:.1f}"
 
 
 def _dph(v: np.ndarray) -> str:
