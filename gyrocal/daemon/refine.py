@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-WIDEN_FRACTION = 0.25
+WIDEN_FRACTION = 0.15
 """The seen temperature range must exceed the held set's by this fraction of the held width..."""
 WIDEN_MIN_C = 1.0
 """...and by at least this many degC, for a refinement on the range alone."""

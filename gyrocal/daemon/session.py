@@ -189,6 +189,7 @@ class Session(RecoveryMixin):
         self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
         self._next_check = now
         self._next_validation_at = 0
+        self._validated_at = 0  # learner samples at the last validation
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -427,7 +428,11 @@ class Session(RecoveryMixin):
             if not monitoring:
                 self.state, self.reason = State.COLLECTING, why
             return
-        if self.learner.samples < self._next_validation_at:
+        # after a push the next validation waits for twice the samples; a temperature range that has
+        # widened past the held set's (refine.py) is worth a look sooner, at 10 % more samples
+        early = (self._gate_result is not None and self._gate_result.widened
+                 and self.learner.samples >= 1.1 * self._validated_at)
+        if self.learner.samples < self._next_validation_at and not early:
             if not monitoring:
                 self.reason = "validation failed before; collecting more samples"
             return
@@ -460,6 +465,7 @@ class Session(RecoveryMixin):
 
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
+        self._validated_at = self.learner.samples
         # what the unit can hold (capabilities.py): validated, recorded and pushed; the rest is reported
         held = self.caps.held_subset(self.names)
         if held is None:
