@@ -322,7 +322,8 @@ class Session(RecoveryMixin):
         # a refinement of a set this daemon pushed is judged per axis (refine.py); the bias stage and
         # a unit set the daemon knows nothing of: every axis must gain
         held_left, held_range = (None, None) if bias else self._held_info()
-        wide = refine.widened(held_range, self.temp_seen)
+        settled = abs(self._trate.value) < refine.SETTLED_C_PER_S
+        wide = refine.widened(held_range, self.temp_seen, settled)
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses; it must be below "
                f"{self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
