@@ -50,8 +50,8 @@ def test_a_wider_range_alone_refines_and_a_narrow_one_does_not() -> None:
     assert not refine.gate(left * 3, removes, 0.0, 20.0, held, widened=True).ok  # worse on every axis
     assert refine.widened((22.0, 30.0), (22.0, 32.0))  # 2 degC beyond an 8 degC range: 25 %
     assert not refine.widened((22.0, 30.0), (22.0, 31.5))
-    assert refine.widened((22.0, 30.0), (22.0, 31.5), settled=True)  # the warm-up has settled: 1 degC
-    assert not refine.widened((22.0, 30.0), (22.0, 30.8), settled=True)
+    assert refine.widened((22.0, 30.0), (22.0, 30.6), settled=True)  # the warm-up has settled: 0.5 degC
+    assert not refine.widened((22.0, 30.0), (22.0, 30.4), settled=True)
     assert not refine.widened((22.0, 22.4), (22.0, 23.0))  # less than WIDEN_MIN_C
     assert refine.widened((22.0, 22.4), (21.0, 23.0))
     assert not refine.widened(None, (20.0, 50.0)) and not refine.widened((20.0, 30.0), None)

@@ -35,8 +35,11 @@ WIDEN_FRACTION = 0.25
 width (and WIDEN_MIN_C) for a refinement on the range alone: a warm-up then gives a few pushes, each
 about a quarter wider, not one every degree..."""
 WIDEN_MIN_C = 1.0
-"""...and once it has settled (|dT/dt| below SETTLED_C_PER_S), by this many degC: the end of a
-warm-up, where the slope of the thermal curve is often steepest and the autopilot would clamp."""
+"""...and by at least this many degC."""
+SETTLED_MIN_C = 0.5
+"""Once the temperature has settled (|dT/dt| below SETTLED_C_PER_S), a widening by this many degC
+suffices: the end of a warm-up, where the thermal curve is often steepest and a clamp costs most
+(0.5 degC x 115 deg/h/degC = 60 deg/h on the virtual ArduPilot's steepest axis)."""
 SETTLED_C_PER_S = 0.02
 """[degC/s] The temperature rate below which a warm-up counts as settled (1.2 degC/min)."""
 AXIS_TOLERANCE = 0.05
@@ -74,13 +77,13 @@ def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
 def widened(held_range: tuple[float, float] | None, seen: tuple[float, float] | None,
             settled: bool = False) -> bool:
     """True when the range seen [degC] reaches beyond the held set's by WIDEN_FRACTION of its width
-    (and WIDEN_MIN_C), or by WIDEN_MIN_C once the temperature has ``settled``; False when either range
-    is unknown."""
+    (and WIDEN_MIN_C), or by SETTLED_MIN_C once the temperature has ``settled``; False when either
+    range is unknown."""
     if held_range is None or seen is None:
         return False
     lo, hi = held_range
     ext = max(0.0, lo - seen[0]) + max(0.0, seen[1] - hi)
-    return ext >= (WIDEN_MIN_C if settled else max(WIDEN_MIN_C, WIDEN_FRACTION * (hi - lo)))
+    return ext >= (SETTLED_MIN_C if settled else max(WIDEN_MIN_C, WIDEN_FRACTION * (hi - lo)))
 
 
 def axes_not_worse(rms_old: np.ndarray, rms_new: np.ndarray, tol: float = AXIS_TOLERANCE) -> np.ndarray:
