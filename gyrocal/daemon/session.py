@@ -177,7 +177,7 @@ class Session(RecoveryMixin):
         self.still_samples = 0
         self.poses: list[np.ndarray] = []  # block-mean terms (P,) of the distinct poses seen
         # the temperature range [degC] of this session's still samples (None: the model has no temp)
-        self._has_temp = any(a.split("^")[0] == "temp" for a in self.spec.atoms)
+        self._has_temp = "temp" in self.spec.atoms
         self.temp_seen: tuple[float, float] | None = None
         self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
         self._gate_result: refine.GateResult | None = None
@@ -340,22 +340,24 @@ class Session(RecoveryMixin):
         a = self.applied
         if a is None or a.version <= 0:
             return None, None
-        if a.version not in self._held_cache:
-            try:
-                rec = self.store.get(self.hello.serial, a.version)
-            except Exception:
-                rec = None
-            left: np.ndarray | None = None
-            rng: tuple[float, float] | None = None
-            if rec is not None and rec.push.get("status") == "acked":
-                pred = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("left") or {}
-                if all(isinstance(pred.get(k), int | float) for k in "xyz"):
-                    left = np.array([pred[k] for k in "xyz"], dtype=float) / DPH
-                r = (rec.stats or {}).get("temp_range_c")
-                if isinstance(r, list) and len(r) == 2 and all(isinstance(v, int | float) for v in r):
-                    rng = (float(r[0]), float(r[1]))
-            self._held_cache[a.version] = (left, rng)
-        return self._held_cache[a.version]
+        if a.version in self._held_cache:
+            return self._held_cache[a.version]
+        try:
+            rec = self.store.get(self.hello.serial, a.version)
+        except Exception:
+            rec = None
+        if rec is None or rec.push.get("status") != "acked":
+            return None, None  # not cached: an ack the store could not record yet may come later
+        left: np.ndarray | None = None
+        rng: tuple[float, float] | None = None
+        pred = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("left") or {}
+        if all(isinstance(pred.get(k), int | float) for k in "xyz"):
+            left = np.array([pred[k] for k in "xyz"], dtype=float) / DPH
+        r = (rec.stats or {}).get("temp_range_c")
+        if isinstance(r, list) and len(r) == 2 and all(isinstance(v, int | float) for v in r):
+            rng = (float(r[0]), float(r[1]))
+        self._held_cache[a.version] = (left, rng)
+        return left, rng
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray],
                       phi: np.ndarray | None = None) -> np.ndarray:
