@@ -346,7 +346,10 @@ class Session(RecoveryMixin):
             rec = self.store.get(self.hello.serial, a.version)
         except Exception:
             rec = None
-        if rec is None or rec.push.get("status") != "acked":
+        if rec is None:  # a set this daemon never recorded (factory, another tool): stays unknown
+            self._held_cache[a.version] = (None, None)
+            return None, None
+        if rec.push.get("status") != "acked":
             return None, None  # not cached: an ack the store could not record yet may come later
         left: np.ndarray | None = None
         rng: tuple[float, float] | None = None
