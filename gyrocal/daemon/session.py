@@ -344,8 +344,8 @@ class Session(RecoveryMixin):
             return self._held_cache[a.version]
         try:
             rec = self.store.get(self.hello.serial, a.version)
-        except Exception:
-            rec = None
+        except Exception:  # the store is unavailable: unknown for now, asked again at the next gate
+            return None, None
         if rec is None:  # a set this daemon never recorded (factory, another tool): stays unknown
             self._held_cache[a.version] = (None, None)
             return None, None
