@@ -55,6 +55,10 @@ def test_a_wider_range_alone_refines_and_a_narrow_one_does_not() -> None:
     assert not refine.widened((22.0, 22.4), (22.0, 23.0))  # less than WIDEN_MIN_C
     assert refine.widened((22.0, 22.4), (21.0, 23.0))
     assert not refine.widened(None, (20.0, 50.0)) and not refine.widened((20.0, 30.0), None)
+    # settled: below 0.02 degC/s and below a tenth of the fastest warming seen (90 % of the rise done)
+    assert refine.settled(0.015, 0.5) and refine.settled(-0.004, 0.05)
+    assert not refine.settled(0.015, 0.05)  # a slow warm-up at 38 of 50 degC is still warming
+    assert not refine.settled(0.03, 1.0)
     assert refine.axes_not_worse(np.array([1.0, 1.0, 1.0]), np.array([1.04, 0.1, 1.0])).all()
     assert refine.axes_not_worse(np.array([1.0, 1.0, 1.0]), np.array([1.1, 0.1, 1.0])).tolist() == [
         False, True, True]

@@ -190,6 +190,7 @@ class Session(RecoveryMixin):
         self._next_check = now
         self._next_validation_at = 0
         self._validated_at = 0  # learner samples at the last validation
+        self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -256,6 +257,10 @@ class Session(RecoveryMixin):
             "dtemp": self._trate.update(samples["t"], samples["temp"]),
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
+        rate = np.abs(cols["dtemp"])
+        rate = rate[np.isfinite(rate)]
+        if rate.size:  # the fastest warming this session, for refine.settled
+            self._peak_trate = max(self._peak_trate, float(rate.max()))
         # learn on gravity as a unit vector (gx^2 + gy^2 + gz^2 = 1 exactly, so the structural null
         # direction is exact); the unit applies its set on the measured accel, hence raw below
         phi = block_terms(self.spec, cols)
@@ -322,7 +327,7 @@ class Session(RecoveryMixin):
         # a refinement of a set this daemon pushed is judged per axis (refine.py); the bias stage and
         # a unit set the daemon knows nothing of: every axis must gain
         held_left, held_range = (None, None) if bias else self._held_info()
-        settled = abs(self._trate.value) < refine.SETTLED_C_PER_S
+        settled = refine.settled(self._trate.value, self._peak_trate)
         wide = refine.widened(held_range, self.temp_seen, settled)
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses; it must be below "
