@@ -38,8 +38,8 @@ def test_a_good_axis_no_longer_blocks_a_refinement_the_others_need() -> None:
 
 
 def test_a_refinement_that_would_make_an_axis_worse_is_refused() -> None:
-    held = np.array([0.2, 3.0, 2.5])  # x was pushed with 0.2 left; the new set would leave 1.0 there
-    g = refine.gate(np.array([1.0, 1.0, 1.0]), np.array([0.5, 40.0, 2.0]), 0.0, 20.0, held)
+    held = np.array([0.2, 3.0, 2.5])  # x was pushed with 0.2 left; the new set would leave 1.0 there (5x)
+    g = refine.gate(np.array([1.0, 1.0, 1.0]), np.array([0.3, 40.0, 2.0]), 0.0, 20.0, held)
     assert not g.ok and g.not_worse.tolist() == [False, True, True]
 
 
@@ -47,7 +47,8 @@ def test_a_wider_range_alone_refines_and_a_narrow_one_does_not() -> None:
     left, removes, held = np.array([1.0, 1.0, 1.0]), np.array([2.0, 2.0, 2.0]), np.array([1.5, 1.5, 1.5])
     assert not refine.gate(left, removes, 0.0, 20.0, held, widened=False).ok
     assert refine.gate(left, removes, 0.0, 20.0, held, widened=True).ok
-    assert not refine.gate(left * 3, removes, 0.0, 20.0, held, widened=True).ok  # worse on every axis
+    assert refine.gate(left * 3, removes, 0.0, 20.0, held, widened=True).ok  # within NOT_WORSE_RATIO
+    assert not refine.gate(left * 5, removes, 0.0, 20.0, held, widened=True).ok  # worse on every axis
     assert refine.widened((22.0, 30.0), (22.0, 32.0))  # 2 degC beyond an 8 degC range: 25 %
     assert not refine.widened((22.0, 30.0), (22.0, 31.5))
     assert refine.widened((22.0, 30.0), (22.0, 30.6), settled=True)  # the warm-up has settled: 0.5 degC
@@ -209,7 +210,7 @@ def test_the_next_switch_on_widens_the_stored_range(tmp_path: Path) -> None:
     h.session = None
     h.switch_on()
     assert h.session is not None and h.session.learner.prior_info is not None
-    h.run(150)
+    h.run(240)
     recs = [r for r in h.store.history(4242) if r.version > first[-1] and r.push.get("status") == "acked"]
     assert recs, h.session.reason
     lo, hi = recs[-1].stats["temp_range_c"]

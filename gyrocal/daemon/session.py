@@ -181,6 +181,7 @@ class Session(RecoveryMixin):
         self.temp_seen: tuple[float, float] | None = None
         self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
         self._gate_result: refine.GateResult | None = None
+        self._refusal_logged: set[int] = set()
         self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
         self.prediction: dict[str, Any] = {}
         self._bias_pushed = False
@@ -337,6 +338,11 @@ class Session(RecoveryMixin):
             why += (f" on some axis (or the range seen {_range(self.temp_seen)} widen the held set's "
                     f"{_range(held_range)} degC), leaving no axis worse than the held set's "
                     f"{_dph(held_left)} deg/h")
+            version = self.applied.version if self.applied is not None else -1
+            if wide and not g.ok and version not in self._refusal_logged:
+                self._refusal_logged.add(version)  # once per held set: the gate runs 4 times a second
+                log.info("unit %s: the range has widened past v%d's, but the refinement is held back: %s",
+                         self.hello.serial, version, why)
         return g.ok, why
 
     def _held_info(self) -> tuple[np.ndarray | None, tuple[float, float] | None]:
