@@ -35,15 +35,15 @@ def test_a_unit_cycling_through_its_poses_drives_the_share_down() -> None:
     assert log.unseen_share() == 2 / 26
 
 
-def test_the_oldest_pose_is_forgotten_with_its_visits() -> None:
-    log = PoseLog(max_poses=4)
-    for g in FACES:
-        _rest(log, g, blocks=1)
-    assert len(log.poses) == 4 and len(log.visits) == 4
-    np.testing.assert_allclose(log.poses[0], FACES[2], atol=0.05)
-    _rest(log, FACES[5], blocks=2)  # still at the last pose: no new visit
-    assert log.visits[-1] == 1
-    _rest(log, FACES[2], blocks=1)  # back to the oldest kept pose
-    assert log.visits[0] == 2
-    assert log.array(3).shape == (4, 3)
+def test_past_the_limit_the_closest_pair_merges_and_the_first_poses_stay() -> None:
+    log = PoseLog(max_poses=3)
+    for x in (0.0, 1.0, 2.0, 2.1):  # one term, e.g. a warm-up's temperature: the end crowds
+        log.note(np.array([x, 1.0]))
+    assert [float(p[0]) for p in log.poses] == [0.0, 1.0, 2.1]  # 2.0 merged into 2.1, not 0.0 dropped
+    assert log.visits == [1, 1, 2]  # the merged pose's visit goes with it
+    log.note(np.array([2.1, 1.0]))  # still at the last pose: no new visit
+    assert log.visits == [1, 1, 2]
+    log.note(np.array([0.0, 1.0]))  # back to the first
+    assert log.visits == [2, 1, 2]
+    assert log.array(2).shape == (3, 2)
     assert PoseLog().array(10).shape == (0, 10)

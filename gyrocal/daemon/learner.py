@@ -20,6 +20,16 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
   c^T phi, RMS over the poses seen and over the sphere, from the estimator's covariance:
   var_a(phi) = sigma_a^2 z^T R^+ z with z = M phi (docs/estimators.md). The session pushes when
   that is small against the drift the set removes, or below ``push.target_drift_dph``.
+- **Temperature terms across switch-ons.** The bias is new at each switch-on; a unit's thermal
+  curve is not. An acked set's record keeps the estimator's information on its temperature terms
+  (terms made only of ``temp`` and ``dtemp``), with every other term (the constant, gravity, t_on)
+  marginalised out: the Schur complement of R, b, q in the normalised terms (``temp_information``).
+  The next switch-on adds it to its own statistics, so its fit is the least-squares fit of every
+  warm-up seen, with a free bias for each (and gravity terms from this session, or held). A warm-up
+  that covers 20-35 degC after one that covered 30-50 degC gives a set over 20-50 degC, not over
+  20-35 (issue 10). The information adds up over switch-ons, with no decay (``estimator.forgetting``
+  < 1 forgets it with the samples, as it forgets the samples). It is used only when the record's
+  terms, normaliser and method (rls, batch) match this session's; else the session starts as before.
 - **Thresholds in time, not samples.** The convergence windows default to seconds of still data at
   the unit's rate, and the per-coefficient bounds (``max_sigma_dps``, ``max_change_dps``) default
   to off: the predicted-drift gate replaces them, and it holds for a 0.002 deg/s fibre gyro and a
@@ -38,6 +48,17 @@ from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.identifiability import rank_aware_solve
 from gyrocal.model.methods import make_estimator
 from gyrocal.model.terms import TermSpec
+
+TEMP_ATOMS = frozenset({"temp", "dtemp"})
+"""Atoms of the terms whose information is carried across switch-ons (the unit's thermal curve)."""
+INFO_METHODS = ("rls", "batch")
+"""Estimators whose statistics are the least-squares information (R, b, q) the prior merges into."""
+
+
+def temp_indices(names: list[str]) -> list[int]:
+    """Indices of the terms made only of temperature atoms (``temp``, ``temp^2``, ``dtemp``...)."""
+    spec = TermSpec.parse(names)
+    return [i for i, t in enumerate(spec.terms) if t.atoms and t.atoms <= TEMP_ATOMS]
 
 
 @lru_cache(maxsize=16)
@@ -96,6 +117,14 @@ class Learner:
         self._sum_res2 = np.zeros(3)
         self._n = 0
         self.prior_left = self._prior_left(prior) if self.has_prior else {}
+        # earlier warm-ups' information on the temperature terms (module docstring)
+        self.prior_info: dict[str, Any] | None = None
+        self.prior_range: tuple[float, float] | None = None  # [degC] of the information merged
+        if self.has_prior:
+            self.prior_info = self._merge_information(prior)
+            r = (getattr(prior, "stats", None) or {}).get("temp_range_c")
+            if self.prior_info is not None and isinstance(r, list) and len(r) == 2:
+                self.prior_range = (float(r[0]), float(r[1]))
         # reads of the estimator (eigen-decompositions of R) are pure functions of its state, which
         # only update_many changes: they are computed once per update and kept until the next one
         self._version = 0
@@ -119,6 +148,63 @@ class Learner:
             if all(isinstance(v.get(a), int | float) for a in "xyz"):
                 out[key] = np.array([v[a] for a in "xyz"], dtype=float) / 3600.0
         return out
+
+    def _merge_information(self, prior: Any) -> dict[str, Any] | None:
+        """Add the record's ``temp_information`` to the estimator; the dict merged, or None."""
+        info = (getattr(prior, "stats", None) or {}).get("temp_information")
+        if not isinstance(info, dict) or self.est.method not in INFO_METHODS:
+            return None
+        keep = temp_indices(self.names)
+        norm = self.est.norm
+        try:
+            names_kept = [self.names[i] for i in keep]
+            if not keep or info.get("terms") != self.names or info.get("keep") != names_kept:
+                return None
+            if not (np.allclose(info["norm_a"], norm.a[keep], rtol=1e-9, atol=0)
+                    and np.isclose(info["y_scale"], norm.y_scale, rtol=1e-9)):
+                return None
+            k = len(keep)
+            rk = np.asarray(info["R"], dtype=np.float64).reshape(k, k)
+            bk = np.asarray(info["b"], dtype=np.float64).reshape(k, 3)
+            qk = np.asarray(info["q"], dtype=np.float64).reshape(3)
+            neff = float(info["neff"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if not (np.all(np.isfinite(rk)) and np.all(np.isfinite(bk)) and np.all(np.isfinite(qk))
+                and np.isfinite(neff) and neff > 0):
+            return None
+        p = len(self.names)
+        R, b = np.zeros((p, p)), np.zeros((p, 3))
+        R[np.ix_(keep, keep)] = rk
+        b[keep] = bk
+        self.est.add_information(R, b, np.maximum(qk, 0.0), neff)
+        return info
+
+    def temp_information(self) -> dict[str, Any] | None:
+        """The estimator's information on the temperature terms, every other term marginalised out.
+
+        For a record (module docstring): ``R`` (K, K), ``b`` (K, 3), ``q`` (3,) in normalised units,
+        ``neff``, with the terms and normaliser they belong to. None when the model has no temperature
+        term, or the method keeps no least-squares statistics.
+        """
+        keep = temp_indices(self.names)
+        if not keep or self.est.method not in INFO_METHODS or self.est.samples == 0:
+            return None
+        R, b, q, neff = self.est._totals()
+        other = [i for i in range(len(self.names)) if i not in keep]
+        rkk, bk, qk = R[np.ix_(keep, keep)], b[keep], q.copy()
+        if other:
+            roo_inv = np.linalg.pinv(R[np.ix_(other, other)], rcond=1e-12, hermitian=True)
+            rko = R[np.ix_(keep, other)]
+            rkk = rkk - rko @ roo_inv @ rko.T
+            bo = b[other]
+            bk = bk - rko @ roo_inv @ bo
+            qk = q - np.einsum("ia,ij,ja->a", bo, roo_inv, bo)
+        rkk = (rkk + rkk.T) / 2.0
+        norm = self.est.norm
+        return {"terms": list(self.names), "keep": [self.names[i] for i in keep],
+                "R": rkk.tolist(), "b": bk.tolist(), "q": np.maximum(qk, 0.0).tolist(), "neff": float(neff),
+                "norm_a": norm.a[keep].tolist(), "y_scale": float(norm.y_scale), "method": self.est.method}
 
     def update_many(self, phi: np.ndarray, raw_dps: np.ndarray, t_s: np.ndarray | None = None) -> None:
         # only the Kalman filter uses time (its bias states move with dt); the others stay as they were

@@ -22,7 +22,9 @@ class PoseLog:
     """Poses seen (block-mean terms (P,)), with the number of still visits to each."""
 
     max_poses: int = 64
-    """The oldest pose is forgotten beyond this many (a unit in a vehicle never stops finding new ones)."""
+    """Beyond this many, the older of the two closest poses is merged into the other (its visits with
+    it), so the memory keeps covering everything seen: a warm-up's first degrees stay among the poses
+    at its end (dropping the oldest pose kept only the last 32 s of one)."""
     tol: float = 0.05
     """Largest difference of any term (gravity components [g]) within which a block is at a seen pose."""
     poses: list[np.ndarray] = field(default_factory=list)
@@ -38,9 +40,11 @@ class PoseLog:
             self.visits.append(1)
             i = len(self.poses) - 1
             if len(self.poses) > self.max_poses:
-                self.poses.pop(0)
-                self.visits.pop(0)
-                i -= 1
+                old, keep = _closest_pair(np.array(self.poses))
+                self.visits[keep] += self.visits[old]
+                self.poses.pop(old)
+                self.visits.pop(old)
+                i -= 1  # the new pose is the last, never the older of a pair
         elif i != self._last:
             self.visits[i] += 1
         self._last = i
@@ -58,3 +62,13 @@ class PoseLog:
         n = sum(self.visits)
         n1 = sum(1 for v in self.visits if v == 1)
         return min(1.0, (n1 + 1) / (n + 1))
+
+
+def _closest_pair(poses: np.ndarray) -> tuple[int, int]:
+    """Indices (older, newer) of the closest pair in (K, P) ``poses``, each term scaled by its span."""
+    span = np.ptp(poses, axis=0)
+    z = poses / np.where(span > 0, span, 1.0)
+    d = np.linalg.norm(z[:, None, :] - z[None, :, :], axis=2)
+    d[np.diag_indices_from(d)] = np.inf
+    i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+    return int(min(i, j)), int(max(i, j))

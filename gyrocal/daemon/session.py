@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.daemon import refine
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.capabilities import PROTOCOL, Projection, UnitCapabilities, project
 from gyrocal.daemon.learner import Learner
@@ -180,6 +181,12 @@ class Session(RecoveryMixin):
         self.samples = 0
         self.still_samples = 0
         self.pose_log = PoseLog(max_poses=self.MAX_POSES)  # distinct poses seen, and visits to each
+        # the temperature range [degC] of this session's still samples (None: the model has no temp)
+        self._has_temp = "temp" in self.spec.atoms
+        self.temp_seen: tuple[float, float] | None = None
+        self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
+        self._gate_result: refine.GateResult | None = None
+        self._refusal_logged: set[int] = set()
         self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
         self.prediction: dict[str, Any] = {}
         self._bias_pushed = False
@@ -188,6 +195,8 @@ class Session(RecoveryMixin):
         self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
         self._next_check = now
         self._next_validation_at = 0
+        self._validated_at = 0  # learner samples at the last validation
+        self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -254,12 +263,23 @@ class Session(RecoveryMixin):
             "dtemp": self._trate.update(samples["t"], samples["temp"]),
         }
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
+        rate = np.abs(cols["dtemp"])
+        rate = rate[np.isfinite(rate)]
+        if rate.size:  # the fastest warming this session, for refine.settled
+            self._peak_trate = max(self._peak_trate, float(rate.max()))
         # learn on gravity as a unit vector (gx^2 + gy^2 + gz^2 = 1 exactly, so the structural null
         # direction is exact); the unit applies its set on the measured accel, hence raw below
         phi = block_terms(self.spec, cols)
         raw = out + self._compensation(samples["seq"], cols, phi)
         blocks, train = self.acc.feed(raw, out, phi, still)
         self.still_samples += int(still.sum())
+        if self._has_temp and still.any():
+            t = samples["temp"][still]
+            t = t[np.isfinite(t)]
+            if t.size:
+                lo, hi = float(t.min()), float(t.max())
+                self.temp_seen = (lo, hi) if self.temp_seen is None else \
+                    (min(lo, self.temp_seen[0]), max(hi, self.temp_seen[1]))
         if train.any() and self.state is not State.PUSHING:
             self.learner.update_many(phi[train], raw[train], samples["t"][train])
         self.holdout.add([b for b in blocks if b.holdout])
@@ -267,7 +287,7 @@ class Session(RecoveryMixin):
         self._note_poses(blocks, cols)
 
     def _note_poses(self, blocks: list[Any], cols: dict[str, np.ndarray]) -> None:
-        """Remember the distinct poses seen (block-mean terms), for the predicted drift."""
+        """Remember the distinct poses seen (block-mean terms), for the predicted drift (poses.py)."""
         self._context = {k: float(np.mean(v)) for k, v in cols.items() if k not in ("ax", "ay", "az")}
         for b in blocks:
             self.pose_log.note(b.phi)
@@ -313,13 +333,56 @@ class Session(RecoveryMixin):
         # the bias stage is judged on what it learns (the bias); the stored terms' error is reported
         left, removes = p.get("gate", p["left"]), p["removes"]
         target = self.cfg.push["target_drift_dph"] / DPH
-        cut = self.BIAS_MIN_CUT if p.get("stage") == "bias" else self.cfg.push["min_cut"]
-        ok = np.all(np.isfinite(left)) and bool(np.all((left <= target) | (left * cut <= removes)))
+        bias = p.get("stage") == "bias"
+        cut = self.BIAS_MIN_CUT if bias else self.cfg.push["min_cut"]
+        # a refinement of a set this daemon pushed is judged per axis (refine.py); the bias stage and
+        # a unit set the daemon knows nothing of: every axis must gain
+        held_left, held_range = (None, None) if bias else self._held_info()
+        settled = refine.settled(self._trate.value, self._peak_trate)
+        wide = refine.widened(held_range, self.temp_seen, settled)
+        g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
         unseen = f", {p['unseen_share']:.0%} of rests at poses not seen yet" if "unseen_share" in p else ""
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses{unseen}; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
                "the set removes")
-        return ok, why
+        if held_left is not None:
+            why += (f" on some axis (or the range seen {_range(self.temp_seen)} widen the held set's "
+                    f"{_range(held_range)} degC), leaving no axis worse than the held set's "
+                    f"{_dph(held_left)} deg/h")
+            version = self.applied.version if self.applied is not None else -1
+            if wide and not g.ok and version not in self._refusal_logged:
+                self._refusal_logged.add(version)  # once per held set: the gate runs 4 times a second
+                log.info("unit %s: the range has widened past v%d's, but the refinement is held back: %s",
+                         self.hello.serial, version, why)
+        return g.ok, why
+
+    def _held_info(self) -> tuple[np.ndarray | None, tuple[float, float] | None]:
+        """The held set's predicted drift left [deg/s] (3,) and temperature range [degC] as its store
+        record has them; (None, None) for a set this daemon has no acked record of."""
+        a = self.applied
+        if a is None or a.version <= 0:
+            return None, None
+        if a.version in self._held_cache:
+            return self._held_cache[a.version]
+        try:
+            rec = self.store.get(self.hello.serial, a.version)
+        except Exception:  # the store is unavailable: unknown for now, asked again at the next gate
+            return None, None
+        if rec is None:  # a set this daemon never recorded (factory, another tool): stays unknown
+            self._held_cache[a.version] = (None, None)
+            return None, None
+        if rec.push.get("status") != "acked":
+            return None, None  # not cached: an ack the store could not record yet may come later
+        left: np.ndarray | None = None
+        rng: tuple[float, float] | None = None
+        pred = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("left") or {}
+        if all(isinstance(pred.get(k), int | float) for k in "xyz"):
+            left = np.array([pred[k] for k in "xyz"], dtype=float) / DPH
+        r = (rec.stats or {}).get("temp_range_c")
+        if isinstance(r, list) and len(r) == 2 and all(isinstance(v, int | float) for v in r):
+            rng = (float(r[0]), float(r[1]))
+        self._held_cache[a.version] = (left, rng)
+        return left, rng
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray],
                       phi: np.ndarray | None = None) -> np.ndarray:
@@ -393,7 +456,11 @@ class Session(RecoveryMixin):
             if not monitoring:
                 self.state, self.reason = State.COLLECTING, why
             return
-        if self.learner.samples < self._next_validation_at:
+        # after a push the next validation waits for twice the samples; a temperature range that has
+        # widened past the held set's (refine.py) is worth a look sooner, at 10 % more samples
+        early = (self._gate_result is not None and self._gate_result.widened
+                 and self.learner.samples >= 1.1 * self._validated_at)
+        if self.learner.samples < self._next_validation_at and not early:
             if not monitoring:
                 self.reason = "validation failed before; collecting more samples"
             return
@@ -426,6 +493,7 @@ class Session(RecoveryMixin):
 
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
+        self._validated_at = self.learner.samples
         # what the unit can hold (capabilities.py): validated, recorded and pushed; the rest is reported
         held = self.caps.held_subset(self.names)
         if held is None:
@@ -449,9 +517,30 @@ class Session(RecoveryMixin):
             "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
         }
-        if not new2 <= need * old2:
+        g = self._gate_result
+        refining = stage == "full" and g is not None and self._held_info()[0] is not None
+        worse = ~refine.axes_not_worse(rms_old, rms_new) if refining else np.zeros(3, dtype=bool)
+        # a refinement is not worse on any axis, and improves by min_improvement on the three axes
+        # together or on one, or widens the range: a gain in TMIN..TMAX the held-out residual cannot
+        # show (the link reconstructs the unit's output with the held set unclamped)
+        enough = new2 <= need * old2
+        if refining and g is not None:
+            one_axis = bool(np.any(rms_new <= (1.0 - self.cfg.validation["min_improvement"]) * rms_old))
+            enough = enough or one_axis or g.widened
+        worse_axes = [a for a, w in zip("xyz", worse, strict=True) if w]
+        if refining and g is not None:
+            gains = [a for a, w in zip("xyz", g.gains, strict=True) if w]
+            self.last_validation["refinement"] = {"widened": g.widened, "worse_axes": worse_axes,
+                                                  "gains": gains}
+        if worse_axes:
+            why = (f"validation: new set's held-out RMS {_dph(rms_new)} deg/h is worse than the held set's "
+                   f"{_dph(rms_old)} deg/h on axis {'/'.join(worse_axes)}; not pushing")
+        elif not enough:
             why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
                    f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
+        else:
+            why = ""
+        if why:
             self.last_validation["passed"] = False
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             if stage == "bias":
@@ -519,12 +608,24 @@ class Session(RecoveryMixin):
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
                    "predicted_drift_dph": self._push_prediction,
-                   "warm_started_from": self.warm_started_from},
+                   "warm_started_from": self.warm_started_from,
+                   # the range the set was learnt over (this and earlier switch-ons' merged) and the
+                   # information on its temperature terms for the next switch-on (learner.py)
+                   "temp_range_c": self.temp_range(),
+                   "temp_information": self.learner.temp_information()},
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
             push={"status": "pending"},
         )
         rec = self.store.add(rec, min_version=self.version_floor())
         return {"version": rec.version}
+
+    def temp_range(self) -> list[float] | None:
+        """The temperature range [degC] the learnt set covers: this session's still samples, merged with
+        the range of the earlier switch-ons whose information the learner holds (None: no temp term)."""
+        rngs = [r for r in (self.temp_seen, self.learner.prior_range) if r is not None]
+        if not rngs:
+            return None
+        return [min(r[0] for r in rngs), max(r[1] for r in rngs)]
 
     def version_floor(self) -> int:
         """The lowest version a new set may take: above the one the unit holds (it may not be ours)."""
@@ -592,7 +693,8 @@ class Session(RecoveryMixin):
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
             self.monitor.clear()
-            self.holdout.clear()
+            # the held-out blocks are kept: a refinement is validated over the whole range seen (their
+            # raw rate does not depend on the set the unit applied)
             self.state = State.MONITORING
             self.reason = f"monitoring v{version}"
             self._next_validation_at = 2 * self.learner.samples + 1
@@ -673,6 +775,10 @@ class Session(RecoveryMixin):
             "predicted_drift_dph": {k: (_xyz_dph(v) if k in PREDICTED_KEYS else v)
                                     for k, v in self.prediction.items() if k != "gate"},
         }
+
+
+def _range(r: tuple[float, float] | None) -> str:
+    return "?" if r is None else f"{r[0]:.1f}..{r[1]:.1f}"
 
 
 def _dph(v: np.ndarray) -> str:

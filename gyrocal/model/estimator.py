@@ -259,6 +259,19 @@ class Estimator:
         if not self._snaps or n - self._snaps[-1][0] >= self.conv.window:
             self._snaps = [*self._snaps[-1:], [n, self.coefficients]]
 
+    def add_information(self, R: np.ndarray, b: np.ndarray, q: np.ndarray, neff: float) -> None:
+        """Add earlier data's statistics (normalised units, this estimator's normaliser) as a prior.
+
+        R (P, P), b (P, 3), q (3,), neff: what those samples would have added to R, b, q, n_eff. The
+        sample counts (``samples``, convergence windows) are not changed: they stay this session's.
+        """
+        self._fold()
+        self.R = self.R + np.asarray(R, dtype=np.float64)
+        self.b = self.b + np.asarray(b, dtype=np.float64)
+        self.q = self.q + np.asarray(q, dtype=np.float64)
+        self.neff += float(neff)
+        self._after_fold()
+
     def _totals(self):
         if self._k:
             return self._folded(self._Zb[:self._k], self._Yb[:self._k])

@@ -1,0 +1,109 @@
+"""The push gate's rule, per axis, for a first set and for a refinement of the set a unit holds.
+
+Why (issue 10): the gate used to ask, on EVERY axis, that the new set's predicted drift left be
+below 1/``min_cut`` of the drift it removes. Right for a first set (the unit holds nothing useful,
+so every axis must gain). Wrong for a refinement: once the held set is good on one axis, that axis's
+change stays small, and it blocked a second, wider set that the other axes (or the temperature range)
+needed. A warm-up that gave a first push over 22-33 degC then kept that narrow set for good, and the
+autopilot clamps its temperature into TMIN..TMAX above it.
+
+The rule, with ``left`` the new set's predicted drift left [deg/s] (3,), ``removes`` the drift it
+would take out of the present output at the poses seen (3,), and ``held_left`` the held set's own
+predicted drift left when it was pushed (3,; zeros for a set the daemon did not push):
+
+- an axis **gains** when ``left <= target`` or ``left * cut <= removes`` (the held set is off on it by
+  ``cut`` times the new set's own uncertainty; ``cut`` is ``push.min_cut``, 20);
+- an axis is **not made worse** when it gains, or ``left <= NOT_WORSE_RATIO * max(held_left,
+  removes)``: the new set is predicted about as accurate as the held set was when it was pushed, or
+  the held set is off by more than the new set's uncertainty. The ratio (2) is there because the two
+  figures are over different poses: ``held_left`` over the narrower range the held set saw,
+  ``left`` over the wider range now seen, whose new, steeper end is the least determined part; with
+  1, a warm-up's last, end-of-range set was refused in some runs. The held-out check per axis
+  (``axes_not_worse``) is the measured guard;
+- the set passes when every axis is not made worse and (some axis gains, or the temperature range
+  seen has widened beyond the held set's: ``widened``).
+
+For a unit that holds no set of ours (``held_left`` zero, no recorded range) this is the old rule:
+every axis must gain. Validation on held-out blocks still follows (session.py), and for a refinement
+it also checks each axis on its own (``axes_not_worse``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+WIDEN_FRACTION = 0.25
+"""While the temperature moves, the range seen must exceed the held set's by this fraction of the held
+width (and WIDEN_MIN_C) for a refinement on the range alone: a warm-up then gives a few pushes, each
+about a quarter wider, not one every degree..."""
+WIDEN_MIN_C = 1.0
+"""...and by at least this many degC."""
+SETTLED_MIN_C = 0.5
+"""Once the temperature has settled (|dT/dt| below SETTLED_C_PER_S), a widening by this many degC
+suffices: the end of a warm-up, where the thermal curve is often steepest and a clamp costs most
+(0.5 degC x 115 deg/h/degC = 60 deg/h on the virtual ArduPilot's steepest axis)."""
+SETTLED_C_PER_S = 0.02
+"""[degC/s] A warm-up counts as settled below this rate (1.2 degC/min)..."""
+SETTLED_FRACTION = 0.1
+"""...and below this fraction of the fastest rate seen since the switch-on: for an exponential warm-up,
+90 % of the rise is done. Without it a slow warm-up (time constant 10 min, 0.05 degC/s at its fastest)
+counted as settled at 38 of 50 degC and gave a push every degree after that (16 pushes in 30 min in
+the harness; 10 with it)."""
+
+
+def settled(rate_c_per_s: float, peak_c_per_s: float) -> bool:
+    """True when the temperature rate [degC/s] says the warm-up has (nearly) settled."""
+    r = abs(rate_c_per_s)
+    return r < SETTLED_C_PER_S and r <= SETTLED_FRACTION * abs(peak_c_per_s)
+NOT_WORSE_RATIO = 2.0
+"""How much larger than the held set's a refinement's predicted drift left may be on an axis that does
+not gain (see the module docstring)."""
+AXIS_TOLERANCE = 0.05
+"""A refinement's held-out RMS may exceed the held set's on an axis by at most this fraction (the
+blocks are the same for both sets, so their noise is common: the difference is the sets')."""
+
+
+@dataclass(frozen=True)
+class GateResult:
+    """The gate's decision, with the per-axis masks it was made from."""
+
+    ok: bool
+    gains: np.ndarray  # (3,) bool
+    not_worse: np.ndarray  # (3,) bool
+    widened: bool
+
+
+def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
+         held_left: np.ndarray | None = None, widened: bool = False) -> GateResult:
+    """The rule of the module docstring; all figures per axis in deg/s."""
+    left = np.asarray(left, dtype=float)
+    removes = np.nan_to_num(np.asarray(removes, dtype=float), nan=0.0)
+    held = np.zeros(3) if held_left is None else np.nan_to_num(np.asarray(held_left, dtype=float))
+    finite = bool(np.all(np.isfinite(left)))
+    with np.errstate(invalid="ignore"):
+        gains = (left <= target_dps) | (left * cut <= removes)
+        not_worse = gains | (left <= NOT_WORSE_RATIO * np.maximum(held, removes))
+    if not np.any(held > 0):  # a held set the daemon knows nothing about: every axis must gain
+        ok = finite and bool(np.all(gains))
+    else:
+        ok = finite and bool(np.all(not_worse)) and (bool(np.any(gains)) or widened)
+    return GateResult(ok, gains, not_worse, widened)
+
+
+def widened(held_range: tuple[float, float] | None, seen: tuple[float, float] | None,
+            settled: bool = False) -> bool:
+    """True when the range seen [degC] reaches beyond the held set's by WIDEN_FRACTION of its width
+    (and WIDEN_MIN_C), or by SETTLED_MIN_C once the temperature has ``settled``; False when either
+    range is unknown."""
+    if held_range is None or seen is None:
+        return False
+    lo, hi = held_range
+    ext = max(0.0, lo - seen[0]) + max(0.0, seen[1] - hi)
+    return ext >= (SETTLED_MIN_C if settled else max(WIDEN_MIN_C, WIDEN_FRACTION * (hi - lo)))
+
+
+def axes_not_worse(rms_old: np.ndarray, rms_new: np.ndarray, tol: float = AXIS_TOLERANCE) -> np.ndarray:
+    """Per axis (3,) bool: the new set's held-out RMS [deg/s] is within ``tol`` of the held set's."""
+    return np.asarray(rms_new) <= np.asarray(rms_old) * (1.0 + tol)
