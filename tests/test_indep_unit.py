@@ -224,7 +224,8 @@ def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
         time.sleep(2.0)
         st = daemon.status()
         assert st["sessions"] == sessions + 1
-        assert st["link"]["errors"]["incomplete"] == 0 and st["link"]["errors"]["lost_samples"] == 0
+        errors = st["link"]["errors"]
+        assert errors["incomplete"] == 0 and errors["lost_samples"] == 0, errors
     finally:
         daemon.stop()
         unit.stop()
