@@ -225,7 +225,8 @@ def test_fibre_grade_can_push(tmp_path: Path, node: int) -> None:
         st = daemon.status()
         assert st["sessions"] == sessions + 1
         errors = st["link"]["errors"]
-        assert errors["incomplete"] == 0 and errors["lost_samples"] == 0, errors
+        assert errors["incomplete"] == 0 and errors["lost_samples"] == 0, \
+            json.dumps(errors) + "\n" + daemon.stderr_path.read_text()[-6000:]
     finally:
         daemon.stop()
         unit.stop()
