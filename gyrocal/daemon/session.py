@@ -341,8 +341,8 @@ class Session(RecoveryMixin):
         settled = refine.settled(self._trate.value, self._peak_trate)
         wide = refine.widened(held_range, self.temp_seen, settled)
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
-        unseen = f", {p['unseen_share']:.0%} of rests at poses not seen yet" if "unseen_share" in p else ""
-        why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses{unseen}; it must be "
+        why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
+               f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
                "the set removes")
         if held_left is not None:
