@@ -178,6 +178,9 @@ class MavlinkLink(UnitRequests, Link):
             "fault": self.fault,
             "imu_source": self._source,
             "reboot_required": self.reboot_required,
+            "board_rotation": (
+                self.profile.rotation_of(self._params) if self.profile and self._params else None
+            ),
         }
 
     def _receive(self) -> list[Any]:

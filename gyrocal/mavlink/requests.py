@@ -129,12 +129,14 @@ class UnitRequests:
         self._adj = None
         if res.ok and self.profile is not None:
             u = self.state.unit(self.serial)
+            rotation = self.profile.rotation_of(res.params)  # the frame the set was written in
             u.update(
                 version=write.version,
                 coeffs=[list(r) for r in write.coeffs_dps],
                 terms_id=write.terms_id,
-                durable={k: res.params[k] for k in self.profile.durable if k in res.params},
+                durable={**{k: res.params[k] for k in self.profile.durable if k in res.params}, **rotation},
                 target={**res.target, self.profile.enable.name: 1.0},
+                rotation=rotation,
             )
             self.state.save()
             rep = self._reported(self._params)
