@@ -21,6 +21,12 @@ coldest still temperature, to the board's temperature at the end of the run): ab
 autopilot clamps, and that error is in these figures.
 
     python benchmarks/bench_mavlink.py --quick --json out/bench_mavlink.json
+    python benchmarks/bench_mavlink.py --quick --autopilot px4 --rotation 2   # a board mounted yaw 90
+
+``--rotation N`` starts the virtual autopilot with that board rotation (PX4 SENS_BOARD_ROT, ArduPilot
+AHRS_ORIENTATION): it subtracts its offsets in the sensor frame and rotates its output to the body
+frame; the truth is rotated by the simulator's own rotation (gyrocal/sim/board_rotation.py), so a
+wrong transform in the link shows as a wrong calibration. Figures are per body axis.
 """
 
 from __future__ import annotations
@@ -47,7 +53,9 @@ TERMS = ["1", "temp", "temp^2"]
 by the daemon's rank test over a 30 degC warm-up)."""
 
 
-def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> dict[str, Any]:
+def run_one(
+    kind: str, tau_s: float, limit_s: float, seed: int, work: Path, rotation: int = 0
+) -> dict[str, Any]:
     work.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     sim = subprocess.Popen(
@@ -66,6 +74,8 @@ def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path) -> d
             str(seed),
             "--warmup-tau",
             str(tau_s),
+            "--rotation",
+            str(rotation),
             "--flash",
             str(work / "flash.json"),
             "--status-json",
@@ -148,6 +158,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="fast warm-up (tau 25 s), 180 s limit per autopilot")
     ap.add_argument("--autopilot", choices=("px4", "ardupilot", "both"), default="both")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--rotation",
+        type=int,
+        default=0,
+        metavar="N",
+        help="board rotation of the virtual autopilot (SENS_BOARD_ROT / AHRS_ORIENTATION enum; "
+        "e.g. 2 = yaw 90, 8 = roll 180); the figures are per body axis",
+    )
     ap.add_argument("--json", metavar="OUT.json")
     args = ap.parse_args(argv)
     tau, limit = (25.0, 180.0) if args.quick else (60.0, 420.0)
@@ -157,11 +175,12 @@ def main(argv: list[str] | None = None) -> int:
         "warmup_tau_s": tau,
         "terms": TERMS,
         "seed": args.seed,
+        "rotation": args.rotation,
     }
     with tempfile.TemporaryDirectory(prefix="bench_mavlink_") as tmp_dir:
         tmp = os.environ.get("BENCH_MAVLINK_KEEP") or tmp_dir
         for kind in kinds:
-            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind)
+            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind, args.rotation)
             params = r["flash"]["params"]
             prof = PROFILES[kind](0)
             lo, hi = params[prof.p_tmin], params[prof.p_tmax]  # type: ignore[attr-defined]
@@ -185,8 +204,8 @@ def main(argv: list[str] | None = None) -> int:
                 res["seen"] = {"tmin_c": lo, "tmax_c": round(seen_hi, 2), **seen}
             results[kind] = res
             print(
-                f"{kind}: first push after {res['pushed_after_s']} s; pushes {r['pushes']}; "
-                f"range of the set held at the end {lo:.1f}..{hi:.1f} degC"
+                f"{kind} (board rotation {args.rotation}): first push after {res['pushed_after_s']} s; "
+                f"pushes {r['pushes']}; range of the set held at the end {lo:.1f}..{hi:.1f} degC"
             )
             for i, t in enumerate(res["temps_c"]):
                 print(f"  {t:6.1f} degC  before {res['before_dph'][i]}  after {res['after_dph'][i]} deg/h")
