@@ -16,10 +16,12 @@ roll, then pitch, then yaw (Euler 3-2-1: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``)
   the Euler angles SENS_BOARD_X_OFF, Y_OFF, Z_OFF [deg] (``Utilities.cpp``). Older PX4 (before the
   2020 renumbering to the MAVLink list, e.g. commit d41208735daba6c70bca84757730386172a0b301) numbered
   26..41 differently; this table is the MAVLink-aligned one.
-- ArduPilot ``libraries/AP_Math/rotations.h`` (ArduPilot/ardupilot 17bcf9310c23a3b7a2ad51b8d12537058c6424c2
-  and later) names 0..43 the same way; ``vector3.cpp`` ``Vector3<T>::rotate`` applies each by
-  component swaps (roll first, then pitch, then yaw). Entry 38 (ROTATION_ROLL_90_PITCH_68_YAW_293) is
-  an explicit matrix there, which we take as written; PX4's entry 38 is {90, 68, 293} whole degrees,
+- ArduPilot ``libraries/AP_Math/rotations.h`` (ArduPilot/ardupilot 17bcf9310c23a3b7a2ad51b8d12537058c6424c2)
+  names 0..43 the same way; ``vector3.cpp`` ``Vector3<T>::rotate`` (0..38 at commit
+  0a7bb2df0f00fe8da98cc42100a75f2ee9a7bd29; 39..43 in a later version) applies each by component
+  swaps (roll first, then pitch, then yaw). Entry 38 (ROTATION_ROLL_90_PITCH_68_YAW_293) is an
+  explicit matrix there (0.143039f, ...), which we take as written with its later 30-digit constants
+  (equal to 1e-6); PX4's entry 38 is {90, 68, 293} whole degrees,
   so the two differ by under a degree. 41..43 differ between the two (PX4: ROLL_270_YAW_180,
   ROLL_270_YAW_270, PITCH_90_YAW_180, ...; ArduPilot: PITCH_7, ROLL_45, ROLL_315).
 - ArduPilot ROTATION_CUSTOM_1/2 (101/102): ``AP_CustomRotations.cpp``: ``m.from_euler(CUST_ROTn_ROLL,
