@@ -30,9 +30,10 @@ def daemon_status(sock: Path) -> dict:
     return json.loads(out.stdout) if out.returncode == 0 and out.stdout.strip() else {}
 
 
-def run_daemon_until_acked(tmp_path: Path, *sim_args: str) -> dict:
+def run_daemon_until_acked(tmp_path: Path, *sim_args: str) -> tuple[dict, dict]:
     """``gyrocal sim --link mavlink --autopilot ardupilot`` (warm-up tau 20 s) and ``gyrocal run`` until
-    the daemon's first acked push; returns the autopilot's parameters then (its status JSON)."""
+    the daemon's first acked push; returns the autopilot's parameters then (its status JSON) and the
+    daemon's status."""
     with SimProcess(
         "--link",
         "mavlink",
@@ -78,11 +79,11 @@ def run_daemon_until_acked(tmp_path: Path, *sim_args: str) -> dict:
             daemon.terminate()
             daemon.wait(20)
             log.close()
-        return read_status(tmp_path / "ap.json")["params"]
+        return read_status(tmp_path / "ap.json")["params"], st
 
 
 def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path) -> None:
-    params = run_daemon_until_acked(tmp_path)
+    params, _ = run_daemon_until_acked(tmp_path)
     # the offset left over the range the daemon saw, against the truth, before and after
     truth = VirtualAutopilot("ardupilot", 250, 0)
     truth.power_on()
@@ -103,8 +104,9 @@ def test_the_daemon_calibrates_a_board_mounted_rotated(tmp_path: Path) -> None:
     subtracts in the sensor frame and rotates its output by its own transcription of ArduPilot's
     Vector3::rotate; the truth is rotated the same way (autopilot_truth), so an unrotated or wrongly
     rotated push would leave the error, not cut it."""
-    params = run_daemon_until_acked(tmp_path, "--rotation", "10")
+    params, st = run_daemon_until_acked(tmp_path, "--rotation", "10")
     assert params["AHRS_ORIENTATION"] == 10
+    assert st["last_push"]["board_rotation"] == {"AHRS_ORIENTATION": 10.0}  # in the store record too
     assert params["INS_TCAL1_TMAX"] - params["INS_TCAL1_TMIN"] > 5.0
     temps = np.linspace(params["INS_TCAL1_TMIN"], params["INS_TCAL1_TMAX"], 5)
     res = offset_errors("ardupilot", 0, params, temps)

@@ -40,6 +40,9 @@ class UnitCapabilities:
     term_sets: tuple[tuple[str, ...], ...] | None = None
     max_terms: int = MAX_TERMS
     reboot_required: bool | None = False
+    board_rotation: dict[str, float] | None = None
+    """The unit's board rotation parameters when it holds its set in a frame turned from the samples'
+    (an autopilot: sensor vs body frame, docs/mavlink.md "Board rotation"); recorded with each push."""
 
     def holds(self, names: list[str] | tuple[str, ...]) -> bool:
         if len(names) > self.max_terms:
@@ -56,8 +59,11 @@ class UnitCapabilities:
         return max(fits, key=len) if fits else None
 
     def as_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "max_terms": self.max_terms, "reboot_required": self.reboot_required,
-                "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
+        out = {"kind": self.kind, "max_terms": self.max_terms, "reboot_required": self.reboot_required,
+               "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
+        if self.board_rotation is not None:
+            out["board_rotation"] = dict(self.board_rotation)
+        return out
 
 
 PROTOCOL = UnitCapabilities()
