@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from gyrocal.mavlink.paramtx import ParamPush, ParamReadAll  # noqa: E402
+from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll  # noqa: E402
 from gyrocal.mavlink.poly import DEG_PER_RAD, evaluate  # noqa: E402
 from gyrocal.mavlink.profiles import REAL32, ArduPilot, Px4  # noqa: E402
 from gyrocal.mavlink.rotation import (  # noqa: E402
@@ -128,6 +128,8 @@ class RotServer(Server):
         self.change: tuple[str, float] = ("", 0.0)
 
     def send(self, req: object) -> None:
+        if isinstance(req, ParamRead) and req.name not in self.p:
+            return  # a parameter this firmware does not have: no PARAM_VALUE ever comes
         super().send(req)
         if self.change_after is not None and len(self.sets) >= self.change_after:
             self.p[self.change[0]] = self.change[1]
@@ -165,3 +167,21 @@ def test_a_rotation_changed_during_the_push_never_leaves_the_set_active(when: st
     assert srv.p["TC_G_ENABLE"] == 0.0  # written for yaw 90, never left active under yaw 180
     if when == "before_enable":
         assert srv.sets.count("TC_G_ENABLE") == 1  # never enabled at all
+
+
+def test_a_rotation_changed_to_an_unreadable_custom_one_leaves_compensation_off() -> None:
+    """AHRS_ORIENTATION turns to 101 mid-push while CUST_ROT1_* do not exist (CUST_ROT_ENABLE = 0): the
+    verify read cannot finish; the old set (for the old frame) is not restored, compensation stays off."""
+    prof = ArduPilot(0)
+    srv = RotServer(prof, {"INS_TCAL1_ENABLE": 1.0, "INS_GYR1_CALTEMP": 30.0, "INS_TCAL1_GYR1_X": 5.0})
+    n_sets = 1 + len(prof.to_params(Q, {"INS_GYR1_CALTEMP": 30.0}, 20.0, 50.0))
+    srv.change_after, srv.change = n_sets, ("AHRS_ORIENTATION", 101.0)
+    push = ParamPush(prof, Q, 20.0, 50.0, srv.send, 0.0, timeout_s=0.5, retries=2)
+    t = 0.0
+    while not push.finished and t < 30.0:
+        srv.pump(push)
+        t += 0.6
+        push.tick(t)
+    assert push.finished and not push.outcome.ok
+    assert "board rotation changed" in push.outcome.reason
+    assert srv.p["INS_TCAL1_ENABLE"] == 0.0 and srv.p["INS_TCAL1_GYR1_X"] != 5.0  # off, old set not back

@@ -259,6 +259,14 @@ class ParamPush:
             self.rotation = {k: self.before.get(k) for k in p.rotation_names(self.before)}  # type: ignore[misc]
             self.target = p.to_params(self.q, self.before, self.tmin, self.tmax)
             self._go(Phase.DISABLE, [_Op(p.enable.name, 0.0)], now)
+        elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE) and (
+            self._rotation_changed()
+        ):
+            # the rotation moved (and its new parameters could not all be read): neither the new set
+            # nor the old one fits the new frame, so compensation stays off
+            self._fail = (self._rotation_changed(), int(NakReason.BUSY))
+            log.error("push failed in phase %s: %s; compensation left off", self.phase.value, err)
+            self._go(Phase.RESTORE_ENABLE, [], now)
         elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE):
             self._fail = (err, int(NakReason.OUT_OF_RANGE if self.io.rejected else NakReason.BUSY))
             log.error("push failed in phase %s: %s; restoring the previous set", self.phase.value, err)
@@ -293,9 +301,9 @@ class ParamPush:
         elif self.phase is Phase.ENABLE:
             self._go(Phase.READ_BACK, [_Op(x.name) for x in p.all_params()], now)
         elif self.phase is Phase.READ_BACK:
-            if err:
-                return self._finish(False, f"final read-back: {err}", NakReason.BUSY)
             moved = self._rotation_changed()
+            if err and not moved:
+                return self._finish(False, f"final read-back: {err}", NakReason.BUSY)
             if moved:
                 log.error("final read-back: %s; disabling compensation", moved)
                 self._fail = (moved, int(NakReason.BUSY))

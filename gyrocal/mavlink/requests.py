@@ -199,6 +199,11 @@ class UnitRequests:
         why = self.profile.problem(self._params)
         if why:
             self._set_fault(why)
+            self._config_fault = why
+        elif self.fault is not None and self.fault == getattr(self, "_config_fault", None):
+            # the configuration was fixed (a supported board rotation, a gyro calibration): serve again
+            log.info("mavlink link: %s no longer applies", self.fault)
+            self.fault = self._config_fault = None
         if self._report_wanted:
             self._report_wanted = False
             out.append(self._reported(self._params))
