@@ -31,7 +31,15 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from gyrocal.daemon.ring import RingBuffer  # noqa: E402
 from gyrocal.mavlink.link import MavlinkLink  # noqa: E402
-from gyrocal.protocol.messages import CoeffAck, CoeffNak, CoeffRead, CoeffReport, CoeffWrite, Hello  # noqa: E402
+from gyrocal.protocol.messages import (  # noqa: E402
+    CoeffAck,
+    CoeffNak,
+    CoeffRead,
+    CoeffReport,
+    CoeffWrite,
+    Hello,
+    NakReason,
+)
 from gyrocal.protocol.termsets import terms_id  # noqa: E402
 from tests.sim_helpers import free_udp_port, wait_for  # noqa: E402
 
@@ -98,6 +106,7 @@ class Peer:
         self.stream_hz = 0.0
         self.temp_c = 20.0
         self.stop = threading.Event()
+        self.reboot = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
 
     # the wire encoding of a parameter value (PX4 bytewise ints, ArduPilot C cast)
@@ -153,6 +162,9 @@ class Peer:
         next_hb = next_imu = 0.0
         autopilot = mav.MAV_AUTOPILOT_PX4 if self.flavour == "px4" else mav.MAV_AUTOPILOT_ARDUPILOTMEGA
         while not self.stop.is_set():
+            if self.reboot.is_set():  # a new boot: its clock starts from 0 again
+                self.reboot.clear()
+                t0, next_hb, next_imu = time.monotonic(), 0.0, 0.0
             t = time.monotonic() - t0
             self.temp_c = 20.0 + 30.0 * t / 20.0 if t < 20 else 50.0
             if t >= next_hb:
@@ -297,6 +309,44 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(
         assert wait_for(lambda: any(isinstance(m, CoeffReport) for m in ctl), 10)
         rep = [m for m in ctl if isinstance(m, CoeffReport)][-1]
         assert rep.version == 9 and np.array_equal(np.asarray(rep.coeffs_dps), Q)
+    finally:
+        link.stop()
+        peer.stop.set()
+        peer.thread.join(2)
+        peer.sock.close()
+
+
+def test_a_rotation_gyrocal_cannot_map_is_one_clear_fault_until_fixed(tmp_path: Path) -> None:
+    """AHRS_ORIENTATION 100 (ROTATION_CUSTOM_OLD, documented as the old custom rotation): one error naming
+    it, no Hello, pushes NAKed. Set to 8 (Roll180) and rebooted, the unit is served and calibrated."""
+    port = free_udp_port()
+    ctl: list[object] = []
+    events: list[tuple[str, str]] = []
+    link = MavlinkLink(
+        f"udpin:127.0.0.1:{port}",
+        RingBuffer(1 << 15),
+        ctl.append,
+        lambda name, detail: events.append((name, detail)),
+        state_file=str(tmp_path / "s.json"),
+        rate_hz=100,
+        param_timeout_s=0.3,
+    )
+    peer = Peer("ardupilot", port)
+    peer.params["AHRS_ORIENTATION"] = (100, INT8)
+    peer.thread.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.fault is not None, 15)
+        assert "AHRS_ORIENTATION = 100" in link.fault and "AHRS_CUSTOM_ROLL" in link.fault
+        assert [e for e in events if e[0] == "unit_error"] and not any(isinstance(m, Hello) for m in ctl)
+        link.send(CoeffWrite(3, POLY_ID, Q))
+        assert wait_for(lambda: any(isinstance(m, CoeffNak) for m in ctl), 5)
+        assert [m for m in ctl if isinstance(m, CoeffNak)][0].reason == int(NakReason.UNKNOWN_TERMS)
+        peer.params["AHRS_ORIENTATION"] = (8, INT8)  # a ground station fixes it; it applies at the reboot
+        peer.rotation = 8
+        peer.reboot.set()
+        assert wait_for(lambda: any(isinstance(m, Hello) for m in ctl), 15), link.fault
+        assert link.fault is None and link.board_rotation == {"AHRS_ORIENTATION": 8.0}
     finally:
         link.stop()
         peer.stop.set()
