@@ -309,6 +309,20 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(
         assert wait_for(lambda: any(isinstance(m, CoeffReport) for m in ctl), 10)
         rep = [m for m in ctl if isinstance(m, CoeffReport)][-1]
         assert rep.version == 9 and np.array_equal(np.asarray(rep.coeffs_dps), Q)
+        if rotation:
+            # the board is remounted level (a ground station writes rotation 0): the sensor-frame set
+            # now means something else in the body frame, so it is no longer our v9 but a foreign
+            # set, reported as what the peer really subtracts now
+            name = "SENS_BOARD_ROT" if flavour == "px4" else "AHRS_ORIENTATION"
+            peer.params[name] = (0, peer.params[name][1])
+            peer.rotation = 0
+            link.send(CoeffRead())
+            assert wait_for(lambda: len([m for m in ctl if isinstance(m, CoeffReport)]) == 2, 10)
+            rep = [m for m in ctl if isinstance(m, CoeffReport)][-1]
+            assert rep.version == 0
+            for temp in np.linspace(lo, hi, 3):
+                got = np.asarray(rep.coeffs_dps) @ temp ** np.arange(4)
+                assert np.allclose(got, peer.subtracted_body_dps(temp), atol=1e-5)
     finally:
         link.stop()
         peer.stop.set()
