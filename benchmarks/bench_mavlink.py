@@ -27,6 +27,10 @@ autopilot clamps, and that error is in these figures.
 AHRS_ORIENTATION): it subtracts its offsets in the sensor frame and rotates its output to the body
 frame; the truth is rotated by the simulator's own rotation (gyrocal/sim/board_rotation.py), so a
 wrong transform in the link shows as a wrong calibration. Figures are per body axis.
+
+``--ambients 20,30`` runs two warm-ups, 20 -> 50 and 30 -> 60 degC, the autopilot power-cycled in
+between (a hotter day): the range held at the end is the merge of both (docs/mavlink.md), and the
+figures are those of the last boot, at its own switch-on bias.
 """
 
 from __future__ import annotations
@@ -53,10 +57,13 @@ TERMS = ["1", "temp", "temp^2"]
 by the daemon's rank test over a 30 degC warm-up)."""
 
 
-def run_one(
-    kind: str, tau_s: float, limit_s: float, seed: int, work: Path, rotation: int = 0
-) -> dict[str, Any]:
+def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path,
+            ambients: tuple[float, ...] = (), rotation: int = 0) -> dict[str, Any]:
+    """One daemon against one virtual autopilot; with ``ambients`` of several values, one warm-up per
+    value, the autopilot power-cycled (SIGUSR1) after each but the last. ``rotation``: its board
+    rotation (SENS_BOARD_ROT / AHRS_ORIENTATION)."""
     work.mkdir(parents=True, exist_ok=True)
+    boots = max(1, len(ambients))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     sim = subprocess.Popen(
         [
@@ -80,6 +87,7 @@ def run_one(
             str(work / "flash.json"),
             "--status-json",
             str(work / "ap.json"),
+            *(["--ambient", ",".join(f"{a:g}" for a in ambients)] if ambients else []),
         ],
         stdout=subprocess.PIPE,
         stderr=(work / "sim.err").open("wb"),
@@ -115,10 +123,11 @@ def run_one(
     status: dict[str, Any] = {}
     pushed_after = None
     pushes: list[dict[str, Any]] = []
+    boot, boot_t0 = 1, t0
     try:
         # run through the warm-up (4 time constants: 98 % of the 30 degC rise): the daemon keeps
         # validating while it monitors and pushes again when a wider range improves the set
-        while time.monotonic() - t0 < limit_s:
+        while time.monotonic() - boot_t0 < limit_s:
             time.sleep(2.0)
             out = subprocess.run(
                 [sys.executable, "-m", "gyrocal.cli", "status", "--socket", str(work / "ctl.sock"), "--json"],
@@ -132,10 +141,14 @@ def run_one(
                 if last.get("status") == "acked" and (
                     not pushes or pushes[-1]["version"] != last.get("version")
                 ):
-                    pushes.append({"version": last.get("version"), "at_s": round(time.monotonic() - t0, 1)})
+                    pushes.append({"version": last.get("version"), "boot": boot,
+                                   "at_s": round(time.monotonic() - boot_t0, 1)})
                     pushed_after = pushed_after or time.monotonic() - t0
-            if pushed_after and time.monotonic() - t0 > 4.0 * tau_s:
-                break
+            if pushed_after and time.monotonic() - boot_t0 > 4.0 * tau_s:
+                if boot >= boots:
+                    break
+                sim.send_signal(signal.SIGUSR1)  # switch the autopilot off and on: the next warm-up
+                boot, boot_t0 = boot + 1, time.monotonic()
     finally:
         for proc in (daemon, sim):
             proc.send_signal(signal.SIGTERM)
@@ -148,6 +161,7 @@ def run_one(
         "status": status,
         "pushed_after_s": pushed_after,
         "pushes": pushes,
+        "boots": boot,
         "flash": json.loads((work / "flash.json").read_text()),
         "end_temp_c": json.loads((work / "ap.json").read_text()).get("temp_c"),
     }
@@ -167,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
         "e.g. 2 = yaw 90, 8 = roll 180); the figures are per body axis",
     )
     ap.add_argument("--json", metavar="OUT.json")
+    ap.add_argument("--ambients", default="", metavar="C,C,...",
+                    help="one warm-up per value, each from that board temperature [degC] (+30 degC), the "
+                    "autopilot power-cycled in between; figures at the last boot over the merged range")
     args = ap.parse_args(argv)
+    ambients = tuple(float(a) for a in args.ambients.split(",") if a.strip())
     tau, limit = (25.0, 180.0) if args.quick else (60.0, 420.0)
     kinds = ("px4", "ardupilot") if args.autopilot == "both" else (args.autopilot,)
     results: dict[str, Any] = {
@@ -176,11 +194,13 @@ def main(argv: list[str] | None = None) -> int:
         "terms": TERMS,
         "seed": args.seed,
         "rotation": args.rotation,
+        "ambients_c": list(ambients),
     }
     with tempfile.TemporaryDirectory(prefix="bench_mavlink_") as tmp_dir:
         tmp = os.environ.get("BENCH_MAVLINK_KEEP") or tmp_dir
         for kind in kinds:
-            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind, args.rotation)
+            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind, ambients, args.rotation)
+            at = {"boot": r["boots"], "ambients_c": ambients}
             params = r["flash"]["params"]
             prof = PROFILES[kind](0)
             lo, hi = params[prof.p_tmin], params[prof.p_tmax]  # type: ignore[attr-defined]
@@ -195,12 +215,12 @@ def main(argv: list[str] | None = None) -> int:
                 "pushes": r["pushes"],
                 "tmin_c": lo,
                 "tmax_c": hi,
-                **offset_errors(kind, args.seed, params, temps),
+                **offset_errors(kind, args.seed, params, temps, **at),
             }
             end = r.get("end_temp_c")
             if isinstance(end, int | float):
                 seen_hi = max(hi, float(end))
-                seen = offset_errors(kind, args.seed, params, np.linspace(lo, seen_hi, 7))
+                seen = offset_errors(kind, args.seed, params, np.linspace(lo, seen_hi, 7), **at)
                 res["seen"] = {"tmin_c": lo, "tmax_c": round(seen_hi, 2), **seen}
             results[kind] = res
             print(

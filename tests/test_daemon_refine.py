@@ -65,6 +65,23 @@ def test_a_wider_range_alone_refines_and_a_narrow_one_does_not() -> None:
         False, True, True]
 
 
+def test_once_settled_a_short_widening_counts_where_the_held_set_leaves_much_there() -> None:
+    """The end of a warm-up creeps up by tenths of a degree; a unit that clamps into TMAX leaves its
+    slope x the gap there. That gap counts once it holds more than 1/cut of the unit's drift."""
+    held, seen = (22.0, 49.0), (21.5, 49.3)
+    assert refine.edge_temps(held, seen) == [21.5, 49.3]
+    assert refine.edge_temps(held, (22.5, 48.0)) == [] and refine.edge_temps(None, seen) == []
+    drift = np.array([400.0, 670.0, 300.0]) / DPH
+    # 0.3 degC x 115 deg/h/degC = 34.5 deg/h on y: above 670 / 20
+    assert refine.edge_costs(np.array([3.0, 34.5, 2.0]) / DPH, drift, 20.0)
+    assert not refine.edge_costs(np.array([3.0, 30.0, 2.0]) / DPH, drift, 20.0)
+    assert not refine.edge_costs(np.array([3.0, np.nan, 2.0]) / DPH, drift, 20.0)
+    assert refine.widened(held, (22.0, 49.3), settled=True, edge_costs=True)
+    assert not refine.widened(held, (22.0, 49.3), settled=True, edge_costs=False)  # below SETTLED_MIN_C
+    assert not refine.widened(held, (22.0, 49.05), settled=True, edge_costs=True)  # below EDGE_MIN_C
+    assert not refine.widened(held, (22.0, 49.3), settled=False, edge_costs=True)  # still warming
+
+
 # -- the session: a warm-up refines the first, narrow set -------------------------------------------
 def _warming_harness(tmp: Path) -> Harness:
     """A still unit warming 20 -> 50 degC (tau 60 s) whose x axis barely drifts with temperature

@@ -89,3 +89,22 @@ def test_a_unit_that_holds_less_gets_its_part_and_the_store_keeps_the_rest(tmp_p
     u = h.unit.status()
     for a in "xyz":
         assert u["drift_rms_compensated_dps"][a] * 3 <= u["drift_rms_raw_dps"][a], (a, u)
+    # the next switch-on warm-starts from the learnt set behind the projected record (held part +
+    # host remainder), not cold: its learner has the prior, and its first set is the bias stage's
+    learnt = c.copy()  # the remainder, plus the held part in the learnt term order
+    learnt[:, [terms.index(n) for n in rec.terms]] += np.array(rec.coefficients_dps)
+    assert np.allclose(learnt, s.learner.coefficients, rtol=0.2, atol=2e-4)  # what was learnt
+    hello = h.unit.power_on()
+    learner = make_learner(h.cfg, rec, RATE_HZ)
+    assert learner.has_prior and np.allclose(learner.prior, learnt, rtol=1e-12, atol=1e-15)
+    assert learner.prior_info is not None  # the temperature term's information carries over too
+    h.detector = StillDetector.for_rate(RATE_HZ, h.cfg.still)
+    h.session = Session(h.cfg, hello[0], learner, h.store, h.send, h.now, RATE_HZ,
+                        warm_started_from=rec.version, caps=caps)
+    h.run(60, until=lambda h: bool(h.session and h.session.last_push.get("status") == "acked"))
+    s2 = h.session
+    assert s2.last_push.get("status") == "acked", s2.reason
+    rec2 = h.store.latest(4242)
+    assert rec2.version == rec.version + 1 and rec2.terms == list(SEED000_TERMS)
+    assert rec2.stats["predicted_drift_dph"]["stage"] == "bias", rec2.stats["predicted_drift_dph"]
+    assert rec2.host_remainder["terms"] == terms  # the learnt rest still kept for the host

@@ -216,3 +216,16 @@ def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytes
             link.stop()
         errors = [r for r in caplog.records if r.levelname == "ERROR" and "MAV_AUTOPILOT" in r.getMessage()]
         assert len(errors) == 1
+
+
+def test_each_boot_of_a_run_starts_at_its_own_ambient() -> None:
+    """``--ambient 20,30``: the second warm-up is on a hotter day (issue 10: merge across switch-ons),
+    and the boot gyro calibration of an ArduPilot is taken at that boot's own temperature."""
+    ap = VirtualAutopilot("ardupilot", 250, 0, ambients_c=(20.0, 30.0))
+    temps, caltemps = [], []
+    for _ in range(3):
+        ap.power_on()
+        temps.append(ap.temp_c(0.0))
+        caltemps.append(ap.params["INS_GYR1_CALTEMP"])
+    assert temps == [20.0, 30.0, 30.0] and caltemps == pytest.approx([20.0, 30.0, 30.0])
+    assert ap.temp_c(1e4) == pytest.approx(60.0)  # each rises 30 degC

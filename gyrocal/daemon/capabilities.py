@@ -34,12 +34,15 @@ DPH = 3600.0
 @dataclass(frozen=True)
 class UnitCapabilities:
     """Which term sets a unit can hold (``term_sets`` None: any set the protocol encodes, up to
-    ``max_terms``), and whether a pushed set waits for a reboot (None: not known)."""
+    ``max_terms``), whether a pushed set waits for a reboot (None: not known), and whether the unit
+    clamps its temperature into the set's TMIN..TMAX before it evaluates the set (an autopilot does;
+    our protocol's unit applies its polynomial at every temperature)."""
 
     kind: str = "protocol"
     term_sets: tuple[tuple[str, ...], ...] | None = None
     max_terms: int = MAX_TERMS
     reboot_required: bool | None = False
+    clamps_temperature: bool = False
     board_rotation: dict[str, float] | None = None
     """The unit's board rotation parameters when it holds its set in a frame turned from the samples'
     (an autopilot: sensor vs body frame, docs/mavlink.md "Board rotation"); recorded with each push."""
@@ -60,6 +63,7 @@ class UnitCapabilities:
 
     def as_dict(self) -> dict[str, Any]:
         out = {"kind": self.kind, "max_terms": self.max_terms, "reboot_required": self.reboot_required,
+               "clamps_temperature": self.clamps_temperature,
                "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
         if self.board_rotation is not None:
             out["board_rotation"] = dict(self.board_rotation)
@@ -130,3 +134,31 @@ def project(names: list[str], coeffs_dps: np.ndarray, held: tuple[str, ...],
     rem = c - emb
     left = np.sqrt(np.mean((phi @ rem.T) ** 2, axis=0)) if len(phi) else np.full(3, np.nan)
     return Projection(tuple(held), d, emb, rem, left, len(phi))
+
+
+def learnt_set(record: Any, names: list[str]) -> np.ndarray | None:
+    """The set learnt over ``names`` (3, P) [deg/s per term unit] that ``record`` holds, or None.
+
+    A record in ``names`` itself is its own coefficients. A projected record (the unit held a subset)
+    gives back the learnt set as the held part embedded in the learnt order plus ``host_remainder``
+    (the projection's split, C = embedded + remainder), so the next switch-on warm-starts from what was
+    learnt rather than cold (issue 10). None when neither matches ``names`` or a value is not finite.
+    """
+    try:
+        terms = list(record.terms)
+        held = np.asarray(record.coefficients_dps, dtype=np.float64)
+        if terms == list(names):
+            c = held
+        else:
+            rem = record.host_remainder or {}
+            if list(rem.get("terms") or []) != list(names) or not set(terms) <= set(names):
+                return None
+            c = np.asarray(rem["coefficients_dps"], dtype=np.float64).copy()
+            if c.shape != (3, len(names)) or held.shape != (3, len(terms)):
+                return None
+            for j, n in enumerate(terms):
+                c[:, list(names).index(n)] += held[:, j]
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return None
+    return c if c.shape == (3, len(names)) and np.all(np.isfinite(c)) else None
+

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal.daemon.capabilities import learnt_set
 from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.identifiability import rank_aware_solve
@@ -90,11 +91,13 @@ class Learner:
     """Seconds of still samples in the convergence windows (error ratio, change) and the minimum."""
 
     def __init__(self, cfg: Any, prior: Any | None = None, rate_hz: float = 1000.0) -> None:
-        self.names = list(prior.terms) if prior is not None and list(prior.terms) == cfg.terms \
-            else list(cfg.terms)
+        self.names = list(cfg.terms)
         est = cfg.estimator
         conv = dict(est["convergence"])
-        self.has_prior = prior is not None and list(prior.terms) == self.names
+        # the stored set over this model's terms: the record's own, or the learnt set behind a
+        # projected record (the unit held a subset; capabilities.learnt_set)
+        prior_c = None if prior is None else learnt_set(prior, self.names)
+        self.has_prior = prior_c is not None
         conv.setdefault("min_rank", 1 if self.has_prior else structural_rank(tuple(self.names)))
         n_win = max(200, int(self.WINDOW_S * rate_hz))
         conv.setdefault("window", n_win)
@@ -103,15 +106,15 @@ class Learner:
         conv.setdefault("max_change_dps", float("inf"))
         kw: dict[str, Any] = {"forgetting": est["forgetting"],
                               "convergence": ConvergenceConfig.from_dict(conv, f"{cfg.source} estimator")}
-        if self.has_prior:
-            kw["prior_dps"] = np.asarray(prior.coefficients_dps, dtype=np.float64)
+        if prior_c is not None:
+            kw["prior_dps"] = prior_c
         if est["method"] in ("lms", "nlms"):
             kw["mu" if est["method"] == "nlms" else "alpha"] = est["step"]
         if est["method"] == "kf":  # bias states with the intensities analyze wrote (model/bias_kalman.py)
             kw["bias"] = load_bias_spec(est["terms"], cfg.source)
         self.est = make_estimator(est["method"], self.names, **kw)
         self.full_rank = structural_rank(tuple(self.names))
-        self.prior = np.asarray(prior.coefficients_dps, dtype=np.float64) if self.has_prior else None
+        self.prior = prior_c
         self.const = self.names.index("1") if "1" in self.names else None
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)

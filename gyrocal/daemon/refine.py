@@ -21,7 +21,9 @@ predicted drift left when it was pushed (3,; zeros for a set the daemon did not 
   1, a warm-up's last, end-of-range set was refused in some runs. The held-out check per axis
   (``axes_not_worse``) is the measured guard;
 - the set passes when every axis is not made worse and (some axis gains, or the temperature range
-  seen has widened beyond the held set's: ``widened``).
+  seen has widened beyond the held set's: ``widened``). Once the warm-up has settled, a widening of a
+  tenth of a degree counts where the held set leaves more than 1/``cut`` of the unit's drift at the
+  new end (``edge_costs``): an autopilot clamps into TMAX, and its steepest axis pays slope x gap.
 
 For a unit that holds no set of ours (``held_left`` zero, no recorded range) this is the old rule:
 every axis must gain. Validation on held-out blocks still follows (session.py), and for a refinement
@@ -44,6 +46,12 @@ SETTLED_MIN_C = 0.5
 """Once the temperature has settled (|dT/dt| below SETTLED_C_PER_S), a widening by this many degC
 suffices: the end of a warm-up, where the thermal curve is often steepest and a clamp costs most
 (0.5 degC x 115 deg/h/degC = 60 deg/h on the virtual ArduPilot's steepest axis)."""
+EDGE_MIN_C = 0.1
+"""[degC] Once settled, the least widening that counts when the held set leaves more than 1/cut of the
+unit's drift at the new end (``edge_costs``): on the virtual ArduPilot's steepest axis (115
+deg/h/degC, 670 deg/h of drift) 1/20 is reached 0.3 degC past TMAX, where SETTLED_MIN_C alone left
+0.5 degC x 115 = 58 deg/h (8.2x over the whole range seen, bench_mavlink.py seed 2). This floor
+bounds the flash writes on a flat curve that the ratio alone would not."""
 SETTLED_C_PER_S = 0.02
 """[degC/s] A warm-up counts as settled below this rate (1.2 degC/min)..."""
 SETTLED_FRACTION = 0.1
@@ -93,15 +101,36 @@ def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
 
 
 def widened(held_range: tuple[float, float] | None, seen: tuple[float, float] | None,
-            settled: bool = False) -> bool:
+            settled: bool = False, edge_costs: bool = False) -> bool:
     """True when the range seen [degC] reaches beyond the held set's by WIDEN_FRACTION of its width
-    (and WIDEN_MIN_C), or by SETTLED_MIN_C once the temperature has ``settled``; False when either
-    range is unknown."""
+    (and WIDEN_MIN_C), or, once the temperature has ``settled``, by SETTLED_MIN_C, or by EDGE_MIN_C
+    where ``edge_costs`` (``edge_costs``: the drift the held set leaves there is worth a push);
+    False when either range is unknown."""
     if held_range is None or seen is None:
         return False
     lo, hi = held_range
     ext = max(0.0, lo - seen[0]) + max(0.0, seen[1] - hi)
-    return ext >= (SETTLED_MIN_C if settled else max(WIDEN_MIN_C, WIDEN_FRACTION * (hi - lo)))
+    if settled:
+        return ext >= SETTLED_MIN_C or (edge_costs and ext >= EDGE_MIN_C)
+    return ext >= max(WIDEN_MIN_C, WIDEN_FRACTION * (hi - lo))
+
+
+def edge_temps(held_range: tuple[float, float] | None,
+               seen: tuple[float, float] | None) -> list[float]:
+    """The ends [degC] of the range seen that lie beyond the held set's range (none if unknown)."""
+    if held_range is None or seen is None:
+        return []
+    return [t for t, out in ((seen[0], seen[0] < held_range[0]), (seen[1], seen[1] > held_range[1])) if out]
+
+
+def edge_costs(edge_left: np.ndarray, drift: np.ndarray, cut: float) -> bool:
+    """True when, on some axis, the drift the held set leaves at an end of the range seen beyond its
+    own (``edge_left`` [deg/s] (3,)) is more than 1/``cut`` of the drift the unit has uncompensated
+    (``drift`` [deg/s] (3,), RMS over the poses seen): the push gate's own ratio, applied to the part
+    of the range the held set does not cover."""
+    e = np.nan_to_num(np.asarray(edge_left, dtype=float), nan=0.0)
+    d = np.nan_to_num(np.asarray(drift, dtype=float), nan=np.inf)
+    return bool(np.any(e * cut > d))
 
 
 def axes_not_worse(rms_old: np.ndarray, rms_new: np.ndarray, tol: float = AXIS_TOLERANCE) -> np.ndarray:

@@ -297,9 +297,11 @@ class Session(RecoveryMixin):
         """Block-mean terms (P,) of the distinct poses seen."""
         return self.pose_log.poses
 
-    def _sphere_phi(self) -> np.ndarray:
+    def _sphere_phi(self, at: dict[str, float] | None = None) -> np.ndarray:
+        """Terms (M, P) over the sphere of gravity directions, the other inputs at their latest values
+        (``at`` overrides some of them, e.g. the temperature [degC])."""
         n = SPHERE_G.shape[0]
-        cols = {k: np.full(n, v) for k, v in self._context.items()}
+        cols = {k: np.full(n, v) for k, v in {**self._context, **(at or {})}.items()}
         cols.update({"ax": SPHERE_G[:, 0], "ay": SPHERE_G[:, 1], "az": SPHERE_G[:, 2]})
         cols.setdefault("t", np.zeros(n))
         return block_terms(self.spec, cols)
@@ -339,7 +341,8 @@ class Session(RecoveryMixin):
         # a unit set the daemon knows nothing of: every axis must gain
         held_left, held_range = (None, None) if bias else self._held_info()
         settled = refine.settled(self._trate.value, self._peak_trate)
-        wide = refine.widened(held_range, self.temp_seen, settled)
+        edge = settled and self._edge_costs(held_range, cut)
+        wide = refine.widened(held_range, self.temp_seen, settled, edge)
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
                f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
@@ -355,6 +358,31 @@ class Session(RecoveryMixin):
                 log.info("unit %s: the range has widened past v%d's, but the refinement is held back: %s",
                          self.hello.serial, version, why)
         return g.ok, why
+
+    def _edge_costs(self, held_range: tuple[float, float] | None, cut: float) -> bool:
+        """Whether the held set leaves, at an end of the range seen beyond its own, more than 1/``cut``
+        of the unit's drift on some axis (refine.edge_costs).
+
+        The drift left there is the learnt set minus the held one at that temperature (RMS over the
+        sphere of gravity directions, the other inputs at their latest values); a unit that clamps
+        its temperature into TMIN..TMAX (capabilities) evaluates the held set at the nearer limit.
+        The unit's drift is the learnt set's RMS over the poses seen, uncompensated."""
+        temps = refine.edge_temps(held_range, self.temp_seen)
+        a = self._applied_coeffs()
+        if not temps or held_range is None or a is None or "temp" not in self._context:
+            return False
+        c = self.learner.coefficients
+        poses = self.pose_log.array(len(self.names))
+        if not len(poses) or not np.all(np.isfinite(c)):
+            return False
+        drift = np.sqrt(np.mean((poses @ c.T) ** 2, axis=0))
+        worst = np.zeros(3)
+        for t in temps:
+            held_t = min(max(t, held_range[0]), held_range[1]) if self.caps.clamps_temperature else t
+            at_t = self._sphere_phi({"temp": t}) @ c.T
+            held = self._sphere_phi({"temp": held_t}) @ a.T
+            worst = np.fmax(worst, np.sqrt(np.mean((at_t - held) ** 2, axis=0)))
+        return refine.edge_costs(worst, drift, cut)
 
     def _held_info(self) -> tuple[np.ndarray | None, tuple[float, float] | None]:
         """The held set's predicted drift left [deg/s] (3,) and temperature range [degC] as its store

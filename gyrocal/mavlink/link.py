@@ -119,7 +119,8 @@ class MavlinkLink(UnitRequests, Link):
         for a reboot, as known now (read by the daemon at each switch-on's HELLO)."""
         name = self.profile.name if self.profile is not None else "autopilot"
         return UnitCapabilities(f"mavlink {name}", tuple(self.term_sets.values()), len(TEMP_POLY3_TERMS),
-                                self.reboot_required, self.board_rotation)
+                                self.reboot_required, clamps_temperature=True,
+                                board_rotation=self.board_rotation)
 
     @property
     def board_rotation(self) -> dict[str, float] | None:

@@ -7,7 +7,8 @@ gyrocal/sim/autopilot_run.py carries the bytes over a pty or UDP.
 
 The gyro: raw = switch-on bias (new at each boot, truth.TruthModel) + a cubic in temperature
 (``thermal_dps``, fixed per seed) + white noise, while the board warms from 20 to 50 degC
-(truth.Thermal). The output subtracts what the autopilot's own parameters say, as the real code does
+(truth.Thermal; ``ambients_c`` starts each boot of a run at its own temperature, rising 30 degC).
+The output subtracts what the autopilot's own parameters say, as the real code does
 (see gyrocal/mavlink/profiles.py and docs/mavlink.md for the sources):
 
 - PX4: HIGHRES_IMU [rad/s] = raw - thermal offset - CAL_GYRO0_xOFF. The thermal offset is
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -102,6 +103,7 @@ class VirtualAutopilot:
         sysid: int = 1,
         noise_dps: float = 0.05,
         rotation: int = 0,
+        ambients_c: tuple[float, ...] = (),
     ) -> None:
         if kind not in ("px4", "ardupilot"):
             raise ValueError(f"autopilot {kind!r}: px4 or ardupilot")
@@ -109,6 +111,10 @@ class VirtualAutopilot:
         self.profile = Px4(0) if kind == "px4" else ArduPilot(0)
         self.truth = truth or TruthModel()
         self.thermal = thermal or Thermal(ambient_c=20.0, rise_c=30.0, tau_s=120.0)
+        self.ambients_c = tuple(float(a) for a in ambients_c)
+        """[degC] The board's temperature at each boot of this run, in order (the last repeats; empty:
+        the thermal model's own ambient): a warm-up on a hotter day, to widen the range seen."""
+        self._boots_here = 0
         self.noise_dps = noise_dps
         """White gyro noise at the stream rate [deg/s]: a MEMS gyro after the autopilot's low-pass filter."""
         self.q_true = default_thermal_dps(seed)
@@ -171,6 +177,10 @@ class VirtualAutopilot:
     def power_on(self, wall_s: float = 0.0) -> None:
         """A new boot: fresh bias, time from 0, streams off, each autopilot's boot-time behaviour."""
         self.boot_count += 1
+        if self.ambients_c:
+            amb = self.ambients_c[min(self._boots_here, len(self.ambients_c) - 1)]
+            self.thermal = replace(self.thermal, ambient_c=amb)
+        self._boots_here += 1
         b = BootState(self.boot_count, t0_wall=wall_s)
         b.bias_dps = self.truth.switch_on_bias(self.seed, self.boot_count)
         self.boot = b

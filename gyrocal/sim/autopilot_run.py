@@ -200,7 +200,14 @@ def configure(p: argparse.ArgumentParser) -> None:
         type=float,
         default=120.0,
         metavar="S",
-        help="warm-up time constant 20 -> 50 degC [s] (default 120)",
+        help="warm-up time constant [s] of the 30 degC rise (default 120)",
+    )
+    g.add_argument(
+        "--ambient",
+        default="",
+        metavar="C[,C...]",
+        help="the board's temperature at each boot of this run [degC], in order, the last repeating "
+        "(default 20); each warm-up rises 30 degC from it",
     )
     g.add_argument(
         "--rotation",
@@ -233,12 +240,19 @@ def main(args: argparse.Namespace) -> int:
     faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets)
     if args.warmup_tau <= 0:
         raise ConfigError("--warmup-tau must be > 0 s")
+    try:
+        ambients = tuple(float(a) for a in args.ambient.split(",") if a.strip())
+    except ValueError as err:
+        raise ConfigError(
+            f"--ambient {args.ambient!r}: write degC values separated by commas, e.g. 20,30"
+        ) from err
     ap = VirtualAutopilot(
         args.autopilot,
         args.rate,
         args.seed,
         faults=faults,
         thermal=Thermal(ambient_c=20.0, rise_c=30.0, tau_s=args.warmup_tau),
+        ambients_c=ambients,
     )
     if args.flash and Path(args.flash).exists():
         try:

@@ -4,8 +4,9 @@ Shared by ``gyrocal demo --mavlink`` and benchmarks/bench_mavlink.py, so both re
 
     error(T) = true raw offset(T) - what the autopilot subtracts at T with its parameters   [deg/h]
 
-"before" uses the parameters the autopilot booted with (seed ``seed``, boot 1), "after" those it
-holds at the end, both at the learning boot's switch-on bias. The subtraction is evaluated
+"before" uses the parameters the autopilot left the factory with (seed ``seed``), "after" those it
+holds at the end, both at the learning boot's switch-on bias (boot 1, or the last boot of a run
+with several). The subtraction is evaluated
 continuously (gyrocal.mavlink.profiles: ``applied`` + ``clamp_adjust``, clamped to TMIN..TMAX); PX4's
 1 degC staircase adds at most slope x 1 degC on top (``px4_staircase_dph``). For a PX4 whose
 TC_G_ENABLE was 0 at boot the set applies after the next reboot, under a new switch-on bias that adds
@@ -38,10 +39,13 @@ def held_range(kind: str, params: dict[str, float]) -> tuple[float, float]:
     return float(params[prof.p_tmin]), float(params[prof.p_tmax])  # type: ignore[attr-defined]
 
 
-def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: np.ndarray) -> dict[str, Any]:
-    """Before/after offset error [deg/h] (N, 3) at ``temps`` [degC] for the learning boot (boot 1)."""
-    ap = VirtualAutopilot(kind, 250, seed)
-    ap.power_on()
+def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: np.ndarray,
+                  boot: int = 1, ambients_c: tuple[float, ...] = ()) -> dict[str, Any]:
+    """Before/after offset error [deg/h] (N, 3) at ``temps`` [degC] for the learning boot ``boot``
+    (the last of a run; ``ambients_c`` as the run's ``--ambient``: each boot's own boot calibration)."""
+    ap = VirtualAutopilot(kind, 250, seed, ambients_c=ambients_c)
+    for _ in range(boot):
+        ap.power_on()
     before_params = dict(ap.params)
     prof = PROFILES[kind](0)
     raw = ap.raw_offset_dps(temps)  # sensor frame
