@@ -185,3 +185,19 @@ def test_a_rotation_changed_to_an_unreadable_custom_one_leaves_compensation_off(
     assert push.finished and not push.outcome.ok
     assert "board rotation changed" in push.outcome.reason
     assert srv.p["INS_TCAL1_ENABLE"] == 0.0 and srv.p["INS_TCAL1_GYR1_X"] != 5.0  # off, old set not back
+
+
+def test_a_remounted_board_does_not_warm_start_from_a_set_learnt_in_the_old_frame() -> None:
+    from types import SimpleNamespace
+
+    from gyrocal.daemon.capabilities import UnitCapabilities, frame_changed
+
+    caps = UnitCapabilities("mavlink ardupilot", board_rotation={"AHRS_ORIENTATION": 8.0})
+    same = SimpleNamespace(version=4, push={"status": "acked", "board_rotation": {"AHRS_ORIENTATION": 8.0}})
+    other = SimpleNamespace(version=5, push={"status": "acked", "board_rotation": {"AHRS_ORIENTATION": 0.0}})
+    older = SimpleNamespace(version=3, push={"status": "acked"})  # recorded before rotations were
+    assert frame_changed(caps, same) is None and frame_changed(caps, older) is None
+    assert frame_changed(caps, None) is None
+    why = frame_changed(caps, other)
+    assert why and "v5" in why and "AHRS_ORIENTATION" in why
+    assert frame_changed(UnitCapabilities(), other) is None  # our protocol's unit: no board rotation

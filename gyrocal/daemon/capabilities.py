@@ -74,6 +74,22 @@ PROTOCOL = UnitCapabilities()
 """Our own protocol (docs/protocol.md): any registered term set of up to 21 terms."""
 
 
+def frame_changed(caps: UnitCapabilities, prior: Any) -> str | None:
+    """Why a stored set must not warm-start this switch-on's session, or None.
+
+    An autopilot's samples are in its body frame, and the stored set and its temperature information
+    (learner.py) were learnt in the body frame of the board rotation recorded with its push
+    (``push.board_rotation``). The sensor's thermal curve is fixed to the board, so after a remount (a
+    changed SENS_BOARD_ROT / AHRS_ORIENTATION) it appears turned in the body frame: the old set would
+    be a wrong prior. A record without a recorded rotation (older, or our protocol's unit) is kept.
+    """
+    was = (getattr(prior, "push", None) or {}).get("board_rotation")
+    now = caps.board_rotation
+    if prior is None or was is None or now is None or dict(was) == dict(now):
+        return None
+    return f"the board rotation changed since v{prior.version} was learnt ({was} -> {now})"
+
+
 def of_link(link: Any) -> UnitCapabilities:
     """The link's capability object if it declares one, else our protocol's."""
     caps = getattr(link, "capabilities", None)
