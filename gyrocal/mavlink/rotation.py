@@ -13,9 +13,9 @@ roll, then pitch, then yaw (Euler 3-2-1: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``)
   ``rotation.cpp`` ``get_rot_matrix`` returns ``Dcmf{Eulerf{roll, pitch, yaw}}``. The sensor
   calibration (``src/lib/sensor_calibration/Gyroscope.cpp`` ``set_rotation``) applies
   ``Dcmf(GetSensorLevelAdjustment()) * get_rot_matrix(SENS_BOARD_ROT)`` where the level adjustment is
-  the Euler angles SENS_BOARD_X_OFF, Y_OFF, Z_OFF [deg] (``Utilities.cpp``). Older PX4 (before the
-  2020 renumbering to the MAVLink list, e.g. commit d41208735daba6c70bca84757730386172a0b301) numbered
-  26..41 differently; this table is the MAVLink-aligned one.
+  the Euler angles SENS_BOARD_X_OFF, Y_OFF, Z_OFF [deg] (``Utilities.cpp``). An older PX4 (e.g. commit
+  d41208735daba6c70bca84757730386172a0b301, before it followed the MAVLink list) numbered 26..41
+  differently; this table is the MAVLink-aligned one.
 - ArduPilot ``libraries/AP_Math/rotations.h`` (ArduPilot/ardupilot 17bcf9310c23a3b7a2ad51b8d12537058c6424c2)
   names 0..43 the same way; ``vector3.cpp`` ``Vector3<T>::rotate`` (0..38 at commit
   0a7bb2df0f00fe8da98cc42100a75f2ee9a7bd29; 39..43 in a later version) applies each by component
