@@ -27,6 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
+from gyrocal.sim.truth import ar2_coefficients as _ar2
+from gyrocal.sim.truth import ar2_variance as _ar2_var
+
 FAST_SAMPLES = 4.0
 """Gauss-Markov members with a correlation time up to this many samples are 'colour'."""
 FAST_TAUS_SAMPLES = (0.5, 1.0, 2.0, 4.0)
@@ -140,18 +143,6 @@ class NoiseModel:
             y = lfilter([1.0], [1.0, -a1, -a2], e)[burn:]
             x += y * np.sqrt(v / _ar2_var(a1, a2))
         return x
-
-
-def _ar2(nu0: float, half_width: float) -> tuple[float, float]:
-    """AR(2) coefficients of a resonance at nu0 [cycles/sample] with a Lorentzian half width
-    [cycles/sample]: poles r exp(+-i 2 pi nu0), r = exp(-2 pi half_width)."""
-    r = float(np.exp(-2.0 * np.pi * max(half_width, 1e-6)))
-    return 2.0 * r * float(np.cos(2.0 * np.pi * nu0)), -r * r
-
-
-def _ar2_var(a1: float, a2: float) -> float:
-    """Stationary variance of x_n = a1 x_(n-1) + a2 x_(n-2) + e_n with unit-variance e."""
-    return float((1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1 * a1)))
 
 
 LINE_GRID = 1 << 16
