@@ -28,7 +28,7 @@ LOW_TAU_FRACTION = 0.1
 OWN_MIN_SAMPLES = 1024
 """A session needs this many samples for its own error model (octaves up to a tenth of it: 7)."""
 OWN_ALPHA = 0.01
-"""Level at which the pooled model is rejected for a session (per session and axis)."""
+"""Level at which a log's sessions are found to differ on an axis (shared over its sessions)."""
 METRIC = ("RMS over octave taus (1/fs .. session length / 10) of log10(measured / median of the "
           "simulated ensemble) Allan deviation, per session; per axis the worst session [decades]")
 
@@ -70,7 +70,7 @@ def fidelity_block(prob: Problem, fit_before: np.ndarray, fit_after: np.ndarray,
             "without_flicker": fit_after}
     out: dict = {"metric": METRIC, "ensemble": k_ens, "sessions": []}
     worst: dict[str, dict[str, float]] = {s: {} for s in stages}
-    n_own = 0
+    owns, out["session_models"] = session_models(prob, fit_after, models)
     for si, s in enumerate(sessions):
         sel = prob.usable.session == s
         n = int(sel.sum())
@@ -78,12 +78,10 @@ def fidelity_block(prob: Problem, fit_before: np.ndarray, fit_after: np.ndarray,
         row: dict = {"session": int(s), "samples": n, "tau_s": (m / prob.rate_hz).round(6).tolist(),
                      "measured": {}, "ci_low": {}, "ci_high": {}}
         for k, a in enumerate(AXES):
-            own, info = (session_model(prob, sel, k, fit_after, models[k]) if len(sessions) > 1
-                         else (None, {}))
+            own = owns.get((si, k))
             smods = dict(stages)
             if own is not None:
-                row.setdefault("own_model", {})[a] = info
-                n_own += 1
+                row.setdefault("own_model", {})[a] = own.to_dict()
                 smods["after"] = list(models)
                 smods["after"][k] = own
                 smods["without_colour"] = [_drop(x, "colour") for x in smods["after"]]
@@ -106,32 +104,46 @@ def fidelity_block(prob: Problem, fit_before: np.ndarray, fit_after: np.ndarray,
                 row.setdefault(st, {})[a] = round(dist, 4)
                 worst[st][a] = max(worst[st].get(a, 0.0), dist)
         out["sessions"].append(row)
-    out["own_models"] = n_own
+    out["own_models"] = len(owns)
     for st, per_axis in worst.items():
         out[st] = {a: round(v, 4) for a, v in per_axis.items()}
     return out
 
 
-def session_model(prob: Problem, sel: np.ndarray, k: int, fit_after: np.ndarray,
-                  pooled: NoiseModel) -> tuple[NoiseModel | None, dict]:
-    """The session's own error model on axis k, when the pooled one does not describe that session.
+def session_models(prob: Problem, fit_after: np.ndarray,
+                   models: list[NoiseModel]) -> tuple[dict[tuple[int, int], NoiseModel], dict]:
+    """Per-session error models on the axes where the log's sessions differ.
 
     Why: one log may hold recordings made on different days (sunsided: six), whose noise differs
-    (sunsided z session 0 lies 0.10-0.13 decades below the pooled model at 0.6-2.6 s). Criterion: the
-    session has at least ``OWN_MIN_SAMPLES`` samples and the pooled model's chi-square against the
-    session's own Allan octaves (``twin_chi2``) exceeds the chi-square quantile 1 - ``OWN_ALPHA``; the
-    session then gets ``fit_twin`` of its own residual (the pooled model's lines kept as candidates).
-    Returns (the model or None, the criterion's figures).
+    (sunsided z session 0 lies 0.10-0.13 decades below the pooled model at 0.6-2.6 s). Criterion, per
+    axis: each session with at least ``OWN_MIN_SAMPLES`` samples tests the pooled model against its
+    own Allan octaves (``twin_chi2``, about chi-square with one degree of freedom per octave when the
+    model is right); the sessions differ when any of them rejects it at ``OWN_ALPHA`` shared over the
+    sessions (Bonferroni). Then every such session gets ``fit_twin`` of its own residual (the pooled
+    model's lines kept as candidates): one error model cannot serve them all, and a session that
+    passes the pooled model by chance is still best described by its own. A log of one session, or
+    whose sessions agree, keeps the pooled model. Returns ({(session index, axis): model}, figures).
     """
-    r = prob.y[sel, k] - fit_after[sel, k]
-    chi2, dof = twin_chi2(pooled, r)
-    crit = float(stats.chi2.ppf(1.0 - OWN_ALPHA, max(dof, 1)))
-    info = {"chi2_pooled": round(chi2, 1), "octaves": dof, "critical": round(crit, 1)}
-    if r.size < OWN_MIN_SAMPLES or chi2 <= crit:
-        return None, info
-    own = fit_twin(r, prob.rate_hz, tuple((f, b) for f, b, _ in pooled.lines))
-    info["chi2_own"] = round(twin_chi2(own, r)[0], 1)
-    info["model"] = own.to_dict()
+    sessions = np.unique(prob.usable.session)
+    sels = [prob.usable.session == s for s in sessions]
+    long = [i for i, sel in enumerate(sels) if sel.sum() >= OWN_MIN_SAMPLES]
+    own: dict[tuple[int, int], NoiseModel] = {}
+    info: dict = {}
+    if len(sessions) < 2 or not long:
+        return own, info
+    for k, a in enumerate(AXES):
+        chi, crit = [], []
+        for i in long:
+            c, dof = twin_chi2(models[k], prob.y[sels[i], k] - fit_after[sels[i], k])
+            chi.append(round(c, 1))
+            crit.append(round(float(stats.chi2.ppf(1.0 - OWN_ALPHA / len(long), max(dof, 1))), 1))
+        differ = any(c > q for c, q in zip(chi, crit, strict=True))
+        info[a] = {"sessions": [int(sessions[i]) for i in long], "chi2_pooled": chi, "critical": crit,
+                   "differ": differ}
+        if differ:
+            lines = tuple((f, b) for f, b, _ in models[k].lines)
+            for i in long:
+                own[(i, k)] = fit_twin(prob.y[sels[i], k] - fit_after[sels[i], k], prob.rate_hz, lines)
     return own, info
 
 
