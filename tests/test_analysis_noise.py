@@ -152,6 +152,11 @@ def test_a_found_line_maps_onto_the_truth_model_and_the_virtual_unit_renders_it(
     truth = truth_from_result({"findings": findings, "noise_dps": {a: 0.09 for a in axes},
                                "samples": {"rate_hz": rate}})
     assert truth.effects.lines == [(2, 31.45, 0.13, 0.06)] and truth.effects.any()
+    from gyrocal.errors import ConfigError
+    from gyrocal.sim.truth import TruthModel, set_noise
+    assert set_noise(TruthModel(), ["line_z=31.45,0.13,0.06"]).effects.lines == truth.effects.lines
+    with pytest.raises(ConfigError, match="line_z"):
+        set_noise(TruthModel(), ["line_z=31.45,0.13"])
     n = int(600 * rate)
     whole = SessionStream(truth, still(), rate, 3, 0).chunk(n)
     s = SessionStream(truth, still(), rate, 3, 0)

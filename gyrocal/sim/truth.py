@@ -213,7 +213,7 @@ class TruthModel:
 
 
 NOISE_FIELDS = ("noise_dps", "random_walk_dps_per_sqrt_s", "bias_instability_dps", "flicker_band_s", "gm_dps",
-                "gm_tau_s", "lowpass_hz", "quant_lsb_dps")
+                "gm_tau_s", "lowpass_hz", "quant_lsb_dps", "line_x", "line_y", "line_z")
 """The truth fields ``gyrocal sim --noise NAME=VALUE`` may set (units in their names)."""
 
 
@@ -221,7 +221,9 @@ def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
     """Apply ``NAME=VALUE`` settings (VALUE one number, or x,y,z; flicker_band_s lo,hi) to the model.
 
     E.g. ``random_walk_dps_per_sqrt_s=1e-4``, ``bias_instability_dps=0.0028`` (10 deg/h),
-    ``quant_lsb_dps=0.0076``. Raises ConfigError naming the setting and the fix.
+    ``quant_lsb_dps=0.0076``, ``line_z=31.45,0.13,0.06`` (a narrow-band line on z: centre [Hz], half
+    width [Hz], SD [deg/s]; repeatable, one more line each time). Raises ConfigError naming the
+    setting and the fix.
     """
     scalars = ("noise_dps", "gm_tau_s", "lowpass_hz")
     for item in items or []:
@@ -232,10 +234,13 @@ def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
             vals = [float(v) for v in text.split(",")]
         except ValueError:
             raise ConfigError(f"--noise {item!r}: VALUE must be numbers joined by commas") from None
-        counts = (2,) if name == "flicker_band_s" else (1,) if name in scalars else (1, 3)
+        counts = ((2,) if name == "flicker_band_s" else (3,) if name.startswith("line_")
+                  else (1,) if name in scalars else (1, 3))
         if len(vals) not in counts or not all(math.isfinite(v) and v >= 0 for v in vals):
             raise ConfigError(f"--noise {item!r}: give {' or '.join(map(str, counts))} finite numbers >= 0")
-        if name == "noise_dps":
+        if name.startswith("line_"):
+            model.effects.lines = [*model.effects.lines, ("xyz".index(name[-1]), vals[0], vals[1], vals[2])]
+        elif name == "noise_dps":
             model.noise_dps = vals[0]
         elif name == "flicker_band_s":
             model.effects.flicker_band_s = (vals[0], vals[1])
