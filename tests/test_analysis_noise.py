@@ -270,3 +270,20 @@ def test_the_walk_is_not_named_on_a_quantised_white_null() -> None:
     cols, _ = generate(30028, causes=[])
     res = analyze(LogData(add_background(cols, "quantised", 30028), {}, [], "q")).result
     assert res["findings"] == []
+
+
+def test_sessions_whose_noise_differs_get_their_own_error_model_in_the_fidelity() -> None:
+    """A null tumble log whose first session has 3x the white noise on x (a recording made on another
+    day): the x sessions reject the pooled error model, each session is simulated under its own, and
+    the fidelity on x stays well under the 0.2 decades a pooled model would miss session 0 by; y and
+    z, whose sessions agree, keep the pooled model."""
+    cols, _ = generate(7, causes=[], session_s=600.0)  # >= 1024 still samples per session
+    first = cols["session"] == np.unique(cols["session"])[0]
+    rng = np.random.default_rng(7)
+    cols["wx"] = cols["wx"] + np.where(first, rng.normal(0.0, np.sqrt(8) * 0.002, cols["wx"].size), 0.0)
+    fid = analyze(LogData(cols, {}, [], "sessions differ")).result["fidelity"]
+    sm = fid["session_models"]
+    assert sm["x"]["differ"] and not sm["y"]["differ"] and not sm["z"]["differ"], sm
+    assert fid["own_models"] == len(fid["sessions"]) == 3
+    assert all(set(row["own_model"]) == {"x"} for row in fid["sessions"])
+    assert fid["after"]["x"] < 0.05
