@@ -9,7 +9,9 @@ distance is the RMS over those taus of log10(measured / ensemble median) [decade
 axis is the worst session. Stages: ``before`` (the baseline model with white noise at the
 first-difference level: the simulation as it was), ``after`` (the extended model with the fitted
 error model), and ``after`` without the colour or without the flicker bank (what each noise
-extension is worth: the gain of ``coloured_noise`` and ``bias_instability``).
+extension is worth: the gain of ``coloured_noise`` and ``bias_instability``). Where a log's sessions
+differ (recordings made on different days), each session is simulated under its own error model
+(``session_models``).
 """
 
 from __future__ import annotations
