@@ -1,6 +1,6 @@
 """Analyse every shipped real log; then remove the named regression effects and analyse again.
 
-    .venv/bin/python benchmarks/real_logs.py [--json OUT.json] [--only NAME]
+    .venv/bin/python benchmarks/real_logs.py [--json OUT.json] [--only NAME] [--first-pass-only]
 
 The second pass is the false-alarm measurement on real nulls (issue 12): once its named effects are
 subtracted, a log should show no regression cause (temperature, temperature_rate, warmup, periodic,
@@ -124,18 +124,40 @@ def line_reproduced(log: LogData, cols: dict, finding: dict) -> dict:
     return {"frequency_hz": f0, "halves": rows, "reproduced": all(r["confirmed"] for r in rows)}
 
 
-def worst_tau(fid: dict) -> dict:
+def worst_tau(fid: dict, outside_ci: bool = False) -> dict:
     """Per axis, the largest |log10(measured / simulated after)| at any tau of any session [decades]
-    (the fidelity figure itself is the RMS over taus of the worst session)."""
+    (the fidelity figure itself is the RMS over taus of the worst session). ``outside_ci``: only the
+    taus where the simulated median lies outside the measured 95 % interval (0 when there is none)."""
     out = {}
     for a in "xyz":
         worst = 0.0
         for row in fid["sessions"]:
             m, s = np.array(row["measured"][a]), np.array(row["simulated_after"][a])
             ok = (m > 0) & (s > 0)
+            if outside_ci:
+                ok &= (s < np.array(row["ci_low"][a])) | (s > np.array(row["ci_high"][a]))
             if ok.any():
                 worst = max(worst, float(np.max(np.abs(np.log10(m[ok] / s[ok])))))
         out[a] = round(worst, 3)
+    return out
+
+
+def worst_place(fid: dict) -> dict:
+    """Per axis, where the worst single tau is: session, tau [s], log10(measured / simulated) [decades]
+    and whether the simulated median lies inside the measured 95 % interval there."""
+    out = {}
+    for a in "xyz":
+        best = None
+        for row in fid["sessions"]:
+            m, s = np.array(row["measured"][a]), np.array(row["simulated_after"][a])
+            lo, hi = np.array(row["ci_low"][a]), np.array(row["ci_high"][a])
+            d = np.where((m > 0) & (s > 0), np.log10(np.maximum(m, 1e-300) / np.maximum(s, 1e-300)), 0.0)
+            i = int(np.argmax(np.abs(d)))
+            if best is None or abs(d[i]) > abs(best["decades"]):
+                best = {"session": row["session"], "tau_s": row["tau_s"][i], "decades": round(float(d[i]), 3),
+                        "inside_ci": bool(lo[i] <= s[i] <= hi[i]),
+                        "last_octave": i == len(d) - 1}
+        out[a] = best
     return out
 
 
@@ -162,6 +184,9 @@ def summary(r: dict) -> dict:
         "fidelity_before": r["fidelity"]["before"],
         "fidelity_after": r["fidelity"]["after"],
         "fidelity_after_worst_tau": worst_tau(r["fidelity"]),
+        "fidelity_after_worst_tau_outside_ci": worst_tau(r["fidelity"], outside_ci=True),
+        "fidelity_worst_place": worst_place(r["fidelity"]),
+        "own_session_models": r["fidelity"].get("own_models", 0),
         "retimed": bool(r["samples"]["retimed"]),
         "tau_s": r["tau_s"],
         "psd_peaks": r["diagnostics"]["psd_peaks"],
@@ -172,6 +197,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--json")
     ap.add_argument("--only")
+    ap.add_argument("--first-pass-only", action="store_true",
+                    help="skip the second analysis (after removal): the fidelity figures only")
     args = ap.parse_args()
     out = {}
     for name, load in logs().items():
@@ -183,6 +210,13 @@ def main() -> None:
         r = an.result
         row = summary(r)
         row["seconds"] = round(time.perf_counter() - t0, 1)
+        if args.first_pass_only:
+            out[name] = row
+            print(name, json.dumps({k: row[k] for k in ("fidelity_after", "fidelity_after_worst_tau",
+                                                         "fidelity_after_worst_tau_outside_ci",
+                                                         "fidelity_worst_place", "own_session_models",
+                                                         "seconds")}), flush=True)
+            continue
         cols = {k: np.array(v, float) for k, v in log.columns.items()}
         idx = an.prob.usable.index
         for cause, c in an.contributions.items():
@@ -212,6 +246,8 @@ def main() -> None:
                         "fidelity_before",
                         "fidelity_after",
                         "fidelity_after_worst_tau",
+                        "fidelity_after_worst_tau_outside_ci",
+                        "own_session_models",
                         "noise_dps",
                         "noise_dps_first_differences",
                         "after_removal",
@@ -225,6 +261,11 @@ def main() -> None:
             flush=True,
         )
     n = len(out)
+    if args.first_pass_only:
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump(out, fh, indent=1)
+        return
     strict = sum(r["alarm_strict"] for r in out.values())
     alarms = sum(r["false_alarm"] for r in out.values())
     lines = sum(bool(r["second_line"] and r["second_line"]["reproduced"]) for r in out.values())

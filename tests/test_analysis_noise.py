@@ -135,6 +135,41 @@ def test_noise_causes_map_onto_the_truth_model_so_sim_reproduces_the_allan_curve
     assert np.max(np.abs(dec)) < 0.1, dec
 
 
+def test_a_found_line_maps_onto_the_truth_model_and_the_virtual_unit_renders_it() -> None:
+    """A coloured_noise finding with a 31.45 Hz line on z (sunsided) -> Effects.lines: the virtual
+    unit's still z output has the model's Allan deviation (white + line) within 0.1 decade at every
+    octave tau, x has none of it, and the stream is the same whatever the chunking."""
+    from gyrocal.analysis.extend import truth_from_result
+    from gyrocal.analysis.noisemodel import octave_m, overlapping_avar
+    from gyrocal.sim.schedule import still
+    from gyrocal.sim.truth import SessionStream
+
+    rate = 100.0
+    axes = ["x", "y", "z"]
+    line = {"frequency_hz": 31.45, "half_width_hz": 0.13, "sd_dps": 0.06}
+    findings = [{"cause": "coloured_noise", "axes": ["z"], "params": {
+        "gauss_markov": {"z": []}, "white_dps": {"z": 0.09}, "lines": {"z": [line]}}}]
+    truth = truth_from_result({"findings": findings, "noise_dps": {a: 0.09 for a in axes},
+                               "samples": {"rate_hz": rate}})
+    assert truth.effects.lines == [(2, 31.45, 0.13, 0.06)] and truth.effects.any()
+    from gyrocal.errors import ConfigError
+    from gyrocal.sim.truth import TruthModel, set_noise
+    assert set_noise(TruthModel(), ["line_z=31.45,0.13,0.06"]).effects.lines == truth.effects.lines
+    with pytest.raises(ConfigError, match="line_z"):
+        set_noise(TruthModel(), ["line_z=31.45,0.13"])
+    n = int(600 * rate)
+    whole = SessionStream(truth, still(), rate, 3, 0).chunk(n)
+    s = SessionStream(truth, still(), rate, 3, 0)
+    parts = [s.chunk(k) for k in (1, 2, 997, n - 1000)]
+    assert np.array_equal(np.concatenate([p["wz"] for p in parts]), whole["wz"])
+    model = NoiseModel(rate, 0.09**2, [], 0.0, lines=[(31.45, 0.13, 0.06**2)])
+    mm = octave_m(n, 0.1).astype(float)
+    dec = np.log10(np.sqrt(overlapping_avar(whole["wz"], mm) / model.avar(mm)))
+    assert np.max(np.abs(dec)) < 0.1, dec
+    assert np.std(whole["wz"]) == pytest.approx(np.sqrt(0.09**2 + 0.06**2), rel=0.05)
+    assert np.std(whole["wx"]) == pytest.approx(0.09, rel=0.05)
+
+
 def test_a_wandering_line_is_narrow_band_noise_whose_allan_shape_matches_its_simulation() -> None:
     """A 31.4 Hz resonance of 0.06 deg/s (sunsided z): the line's Allan shape equals its simulated
     curve, and fitting it recovers its variance where white + colour alone misfit by thousands."""
@@ -235,3 +270,20 @@ def test_the_walk_is_not_named_on_a_quantised_white_null() -> None:
     cols, _ = generate(30028, causes=[])
     res = analyze(LogData(add_background(cols, "quantised", 30028), {}, [], "q")).result
     assert res["findings"] == []
+
+
+def test_sessions_whose_noise_differs_get_their_own_error_model_in_the_fidelity() -> None:
+    """A null tumble log whose first session has 3x the white noise on x (a recording made on another
+    day): the x sessions reject the pooled error model, each session is simulated under its own, and
+    the fidelity on x stays well under the 0.2 decades a pooled model would miss session 0 by; y and
+    z, whose sessions agree, keep the pooled model."""
+    cols, _ = generate(7, causes=[], session_s=600.0)  # >= 1024 still samples per session
+    first = cols["session"] == np.unique(cols["session"])[0]
+    rng = np.random.default_rng(7)
+    cols["wx"] = cols["wx"] + np.where(first, rng.normal(0.0, np.sqrt(8) * 0.002, cols["wx"].size), 0.0)
+    fid = analyze(LogData(cols, {}, [], "sessions differ")).result["fidelity"]
+    sm = fid["session_models"]
+    assert sm["x"]["differ"] and not sm["y"]["differ"] and not sm["z"]["differ"], sm
+    assert fid["own_models"] == len(fid["sessions"]) == 3
+    assert all(set(row["own_model"]) == {"x"} for row in fid["sessions"])
+    assert fid["after"]["x"] < 0.05

@@ -27,7 +27,7 @@ from gyrocal.analysis.fidelity import fidelity_block
 from gyrocal.analysis.holdout import ALPHA, FAMILY_ALPHA, MIN_FRACTION, heldout_residual, rms_tau
 from gyrocal.analysis.lrtest import AxisLR, build_axis_lr
 from gyrocal.analysis.noisecauses import find_lines, noise_findings
-from gyrocal.analysis.noisemodel import NoiseModel, fit_noise
+from gyrocal.analysis.noisemodel import NoiseModel, fit_noise, fit_twin
 from gyrocal.analysis.resonance import find_resonance
 from gyrocal.analysis.segments import AXES, usable_samples
 from gyrocal.analysis.timestamps import describe, retime
@@ -129,8 +129,11 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
     # a broad bump (hand tremor / filter on the MPU logs), unless it is the narrow line smoothed
     lines = [nar + tuple(b for b in broad if all(abs(b[0] - c) > 2 * b[1] for c, _ in nar))
              for nar, broad in zip(lines, find_resonance(prob, resid_reg), strict=True)]
-    models = {a: fit_noise(resid_reg[:, k], prob.rate_hz, lines=lines[k]) for k, a in enumerate(AXES)}
-    findings = _findings(prob, per_axis, by_name, coefs, resid_base, models)
+    models = {a: fit_twin(resid_reg[:, k], prob.rate_hz, lines=lines[k]) for k, a in enumerate(AXES)}
+    # the walk's intensities for a bias-state filter: the fit over every octave up to a quarter of
+    # the log (the twin's stops at a tenth, where a walk and a slow Gauss-Markov look alike)
+    whole = {a: fit_noise(resid_reg[:, k], prob.rate_hz, lines=lines[k]) for k, a in enumerate(AXES)}
+    findings = _findings(prob, per_axis, by_name, coefs, resid_base, whole)
     ext_terms = list(SEED000_TERMS)
     for c in cands:
         if any(c in chosen[a] for a in AXES):

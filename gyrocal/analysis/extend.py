@@ -55,9 +55,10 @@ def effects_from_findings(findings: list[dict], rate_hz: float | None = None) ->
     causes map onto the truth model's noise: ``coloured_noise`` onto one Gauss-Markov rate
     (``gm_dps``, ``gm_tau_s``; see ``colour_to_truth``), ``bias_instability`` (or, without it, the
     flicker bank a ``random_walk`` finding carries) onto the flicker floor (``bias_instability_dps``,
-    ``flicker_band_s``; see ``flicker_to_truth``). ``rate_hz`` [Hz] is the log's sample rate (the
-    colour's correlation times are a few samples, so its discretisation matters); None treats the
-    colour in continuous time.
+    ``flicker_band_s``; see ``flicker_to_truth``); the narrow-band lines and resonances of
+    ``coloured_noise`` (``params.lines``) onto ``Effects.lines`` (AR(2) noise). ``rate_hz`` [Hz] is
+    the log's sample rate (the colour's correlation times are a few samples, so its discretisation
+    matters); None treats the colour in continuous time.
     """
     e = Effects()
 
@@ -86,6 +87,8 @@ def effects_from_findings(findings: list[dict], rate_hz: float | None = None) ->
         elif f["cause"] == "coloured_noise":
             gm, e.gm_tau_s = colour_to_truth(p["gauss_markov"], rate_hz)
             e.gm_dps = vec(gm)
+            e.lines = [(AXES.index(a), float(ln["frequency_hz"]), float(ln["half_width_hz"]),
+                        float(ln["sd_dps"])) for a, ls in p.get("lines", {}).items() for ln in ls]
         elif f["cause"] == "bias_instability":
             flicker = p["flicker_bank"]
     if flicker:

@@ -26,6 +26,10 @@ LINE_RATIO = 8.0
 the median of each of its flanks (0.25-2 Hz either side; the higher flank counts, so a slope is not a
 line). White noise: the largest smoothed bin of thousands is about 2x its neighbours."""
 LINE_SMOOTH_HZ = 0.05
+MAX_LINES = 3
+"""Lines per axis: the strongest first, then the next outside +-``LINE_EXCLUDE_HZ`` of those found
+(mikoff imu1 / imu4 z: a 35.5-35.7 Hz line beside the stronger periodic one)."""
+LINE_EXCLUDE_HZ = 1.0
 LINE_MIN_HZ = 1.0
 """Lines below this are left to the slow states (flicker, walk) and the periodic cause."""
 TEST = ("Allan-variance fit of the error model with and without the component (weighted misfit "
@@ -80,8 +84,8 @@ def noise_findings(prob: Problem, resid: np.ndarray, models: dict[str, NoiseMode
 
 
 def find_lines(prob: Problem, resid: np.ndarray) -> list[tuple[tuple[float, float], ...]]:
-    """Per axis, the strongest narrow-band line of the residual (M, 3), as ((centre, half width) [Hz],)
-    or () when there is none (see ``LINE_RATIO``).
+    """Per axis, up to ``MAX_LINES`` narrow-band lines of the residual (M, 3), strongest first, as
+    ((centre, half width) [Hz], ...), or () when there is none (see ``LINE_RATIO``).
 
     Why: a resonance whose frequency wanders (sunsided z, 31.4 Hz, 30 % of the variance) is not one
     sinusoid, so the periodic cause explains too little of it; as noise it is a second-order
@@ -98,22 +102,23 @@ def find_lines(prob: Problem, resid: np.ndarray) -> list[tuple[tuple[float, floa
     band = np.flatnonzero((f >= LINE_MIN_HZ) & (f <= 0.45 * prob.rate_hz))
     out: list[tuple[tuple[float, float], ...]] = []
     for k in range(resid.shape[1]):
-        if band.size < 100:
-            out.append(())
-            continue
-        j = int(band[np.argmax(sm[band, k])])
-        d = f - f[j]
-        flanks = [sm[(d >= -2.0) & (d <= -0.25) & (f > 0), k], sm[(d >= 0.25) & (d <= 2.0), k]]
-        flanks = [x for x in flanks if x.size >= 10]
-        ref = max((float(np.median(x)) for x in flanks), default=0.0)
-        if ref <= 0 or sm[j, k] / ref < LINE_RATIO:
-            out.append(())
-            continue
-        win = np.abs(d) <= 0.25
-        ex = np.maximum(p[win, k] - ref, 0.0)
-        c = float(np.sum(f[win] * ex) / np.sum(ex))
-        hw = float(np.sqrt(np.sum((f[win] - c) ** 2 * ex) / np.sum(ex)))
-        out.append(((round(c, 4), round(max(hw, df), 4)),))
+        found: list[tuple[float, float]] = []
+        free = band.copy()
+        while band.size >= 100 and len(found) < MAX_LINES and free.size:
+            j = int(free[np.argmax(sm[free, k])])
+            d = f - f[j]
+            flanks = [sm[(d >= -2.0) & (d <= -0.25) & (f > 0), k], sm[(d >= 0.25) & (d <= 2.0), k]]
+            flanks = [x for x in flanks if x.size >= 10]
+            ref = max((float(np.median(x)) for x in flanks), default=0.0)
+            if ref <= 0 or sm[j, k] / ref < LINE_RATIO:
+                break
+            win = np.abs(d) <= 0.25
+            ex = np.maximum(p[win, k] - ref, 0.0)
+            c = float(np.sum(f[win] * ex) / np.sum(ex))
+            hw = float(np.sqrt(np.sum((f[win] - c) ** 2 * ex) / np.sum(ex)))
+            found.append((round(c, 4), round(max(hw, df), 4)))
+            free = free[np.abs(f[free] - c) > LINE_EXCLUDE_HZ]
+        out.append(tuple(found))
     return out
 
 

@@ -27,11 +27,24 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
+from gyrocal.sim.truth import ar2_coefficients as _ar2
+from gyrocal.sim.truth import ar2_variance as _ar2_var
+
 FAST_SAMPLES = 4.0
 """Gauss-Markov members with a correlation time up to this many samples are 'colour'."""
 FAST_TAUS_SAMPLES = (0.5, 1.0, 2.0, 4.0)
 SLOW_STEP = 4.0
 """Ratio between successive slow (flicker-bank) correlation times."""
+TWIN_FLOOR = 0.05
+"""Relative model error [fraction of the Allan variance] added in quadrature to each octave's
+chi-square error in the simulation's fit (``fit_twin``). Without it the shortest octaves (thousands
+of clusters, relative error 1-3 %) outweigh the last ones (relative error 30-70 %) by 20-50x, and a
+model that is not exactly right at short tau is bent there at the expense of the long taus (tomisuarez
+static z: 0.135 decades off at the last octave)."""
+TWIN_TOP = 0.1
+"""The simulation's fit uses octaves up to this fraction of the record (the fidelity range): above it
+the regression (session offsets, gravity terms) has absorbed part of the residual's slow power, so the
+residual's Allan deviation falls below the measured log's and would pull the model down."""
 BROAD_HALF_WIDTH_HZ = 0.5
 """A line this wide or wider is broadband colour (counted in the per-sample level), not a narrow line."""
 
@@ -132,18 +145,6 @@ class NoiseModel:
         return x
 
 
-def _ar2(nu0: float, half_width: float) -> tuple[float, float]:
-    """AR(2) coefficients of a resonance at nu0 [cycles/sample] with a Lorentzian half width
-    [cycles/sample]: poles r exp(+-i 2 pi nu0), r = exp(-2 pi half_width)."""
-    r = float(np.exp(-2.0 * np.pi * max(half_width, 1e-6)))
-    return 2.0 * r * float(np.cos(2.0 * np.pi * nu0)), -r * r
-
-
-def _ar2_var(a1: float, a2: float) -> float:
-    """Stationary variance of x_n = a1 x_(n-1) + a2 x_(n-2) + e_n with unit-variance e."""
-    return float((1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1 * a1)))
-
-
 LINE_GRID = 1 << 16
 """Frequency points on [0, 1/2] cycles/sample for a line's Allan shape (a 0.01 Hz wide line at 100 Hz
 spans 13 of them)."""
@@ -220,7 +221,8 @@ def bank_taus(rate_hz: float, n: int) -> list[float]:
 
 
 def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: float = 0.0,
-              lines: tuple[tuple[float, float], ...] = ()) -> NoiseModel:
+              lines: tuple[tuple[float, float], ...] = (), floor: float = 0.0,
+              top: float = 0.25) -> NoiseModel:
     """Fit the error model to a residual series x (N,) [deg/s] by NNLS on its Allan variance.
 
     Each octave's relative error is about 1 / sqrt(N / m); the rows are weighted accordingly, so
@@ -229,17 +231,19 @@ def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: 
     ``upper`` > 0 fits the upper confidence limit of each octave instead (that many sigmas of the
     chi-square with the octave's degrees of freedom): the test's conservative model, because a short
     log's long-tau octaves are few and can hide a slow wander that the test would take for an effect.
+    ``floor`` > 0 weights each octave by 1 / (its chi-square relative SD (+) floor) instead, and ``top``
+    is the longest octave as a fraction of n (``fit_twin``: the simulation's model).
     ``lines`` ((centre, half width) [Hz], ...) adds a narrow-band member per line (``NoiseModel.lines``,
     found in the residual's spectrum by ``noisecauses.find_lines``); "colour" in ``drop`` drops them.
     """
     x = np.asarray(x, float)
     n = x.size
-    m = octave_m(n).astype(float)
+    m = octave_m(n, top).astype(float)
     meas = overlapping_avar(x, m)
     ok = np.isfinite(meas) & (meas > 0)
     m, meas = m[ok], meas[ok]
     if upper > 0:
-        edf = np.maximum(1.0, 3.0 * (n - 1) / (2.0 * m) - 2.0 * (n - 2) / n)
+        edf = _edf(n, m)
         meas = meas * edf / stats.chi2.ppf(stats.norm.sf(upper), edf)
     taus = bank_taus(rate_hz, n)
     shapes, _ = avar_shapes(m, rate_hz, taus)
@@ -255,16 +259,52 @@ def fit_noise(x: np.ndarray, rate_hz: float, drop: tuple[str, ...] = (), upper: 
         keep[1 + nf : iw] = False
     if "walk" in drop:
         keep[iw] = False
-    w = np.sqrt(n / m) / meas
-    a = shapes[:, keep] * w[:, None]
-    scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
-    v, rnorm = optimize.nnls(a / scale, w * meas)
-    v = v / scale
+    w = 1.0 / (meas * _rel_sd(n, m, floor)) if floor > 0 else np.sqrt(n / m) / meas
+    v, rnorm = _nnls(shapes[:, keep], meas, w)
     full = np.zeros(shapes.shape[1])
     full[keep] = v
     gm = [(t, float(vv)) for t, vv in zip(taus, full[1:iw], strict=True) if vv > 0]
     found = [(f, b, float(v)) for (f, b), v in zip(lines, full[iw + 1:], strict=True) if v > 0]
     return NoiseModel(rate_hz, float(full[0]), gm, float(full[iw]), float(rnorm**2), found)
+
+
+def _rel_sd(n: int, m: np.ndarray, floor: float) -> np.ndarray:
+    """Relative SD of an overlapping Allan variance estimate at cluster sizes m (chi-square with the
+    octave's degrees of freedom) with a relative model error ``floor`` in quadrature."""
+    return np.sqrt(2.0 / _edf(n, m) + floor**2)
+
+
+def fit_twin(x: np.ndarray, rate_hz: float, lines: tuple[tuple[float, float], ...] = ()) -> NoiseModel:
+    """The simulation's error model (the twin's): ``fit_noise`` with each octave weighted by its
+    chi-square error plus ``TWIN_FLOOR``, over the octaves up to ``TWIN_TOP`` of the record."""
+    return fit_noise(x, rate_hz, lines=lines, floor=TWIN_FLOOR, top=TWIN_TOP)
+
+
+def twin_chi2(model: NoiseModel, x: np.ndarray) -> tuple[float, int]:
+    """How well a model explains a series' Allan curve: sum over the ``fit_twin`` octaves of
+    ((measured - model) / (model x relative SD))^2, and the number of octaves. About chi-square with
+    that many degrees of freedom when the model is right (the octaves are nearly independent)."""
+    n = x.size
+    m = octave_m(n, TWIN_TOP).astype(float)
+    meas = overlapping_avar(np.asarray(x, float), m)
+    ok = np.isfinite(meas) & (meas > 0)
+    m, meas = m[ok], meas[ok]
+    mod = model.avar(m)
+    return float(np.sum(((meas - mod) / (mod * _rel_sd(n, m, TWIN_FLOOR))) ** 2)), int(m.size)
+
+
+def _nnls(shapes: np.ndarray, meas: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
+    """Non-negative variances minimising |w (shapes v - meas)|^2 (columns scaled for conditioning)."""
+    a = shapes * w[:, None]
+    scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+    v, rnorm = optimize.nnls(a / scale, w * meas)
+    return v / scale, float(rnorm)
+
+
+def _edf(n: int, m: np.ndarray) -> np.ndarray:
+    """Equivalent degrees of freedom of an overlapping Allan variance of n samples at cluster sizes m
+    (the white-noise formula, at least 1)."""
+    return np.maximum(1.0, 3.0 * (n - 1) / (2.0 * m) - 2.0 * (n - 2) / n)
 
 
 def component_need(x: np.ndarray, rate_hz: float,

@@ -90,6 +90,11 @@ class Effects:
     per-sample std falls to noise_dps * sqrt(a / (2 - a)), a = 1 - exp(-2 pi fc / fs)."""
     quant_lsb_dps: np.ndarray = field(default_factory=_vec3)
     """Output quantisation step [deg/s per LSB] (0 = none), e.g. 1/131 for an MPU-6050 at 250 deg/s."""
+    lines: list[tuple[int, float, float, float]] = field(default_factory=list)
+    """Narrow-band noise (a resonance whose frequency wanders: sunsided z at 31.4 Hz, the 10 Hz bump of
+    hand-turned MPU logs): (axis 0-2, centre [Hz], half width [Hz], stationary SD [deg/s]) of a
+    second-order (AR(2)) process at the sample rate, poles r exp(+-i 2 pi f / fs), r = exp(-2 pi b /
+    fs) (as ``gyrocal.analysis.noisemodel``). A noise, not drift."""
 
     def any(self) -> bool:
         return any(
@@ -97,7 +102,7 @@ class Effects:
             for f in ("temp_dps_per_c", "temp2_dps_per_c2", "temp_rate_dps_per_cps",
                       "warmup_dps", "random_walk_dps_per_sqrt_s", "periodic_dps", "scale_factor",
                       "bias_instability_dps", "gm_dps", "lowpass_hz", "quant_lsb_dps")
-        )
+        ) or any(sd > 0 for _, _, _, sd in self.lines)
 
 
 def flicker_components(band_s: tuple[float, float], per_decade: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -118,6 +123,28 @@ def flicker_components(band_s: tuple[float, float], per_decade: int = 3) -> tupl
     avar = sum(gauss_markov_avar(taus, 1.0, t) for t in corr)
     w = FLICKER_FLOOR / math.exp(0.5 * float(np.mean(np.log(avar))))
     return corr, np.full(k, w)
+
+
+def ar2_coefficients(nu0: float, half_width: float) -> tuple[float, float]:
+    """AR(2) coefficients (a1, a2) of x_n = a1 x_(n-1) + a2 x_(n-2) + e_n for a resonance at nu0
+    [cycles/sample] with a Lorentzian half width [cycles/sample]: poles r exp(+-i 2 pi nu0), r =
+    exp(-2 pi half_width)."""
+    r = float(np.exp(-2.0 * np.pi * max(half_width, 1e-6)))
+    return 2.0 * r * float(np.cos(2.0 * np.pi * nu0)), -r * r
+
+
+def ar2_variance(a1: float, a2: float) -> float:
+    """Stationary variance of that AR(2) with unit-variance e."""
+    return float((1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1 * a1)))
+
+
+def _ar2_stationary(a1: float, a2: float, sd: float, rng: np.random.Generator) -> tuple[float, float]:
+    """(x_(-1), x_(-2)) drawn from the stationary state of the AR(2) scaled to SD sd [deg/s]."""
+    rho = a1 / (1.0 - a2)  # lag-1 autocorrelation
+    z1, z2 = rng.normal(0.0, 1.0, 2)
+    y1 = sd * z1
+    y2 = sd * (rho * z1 + math.sqrt(max(1.0 - rho * rho, 0.0)) * z2)
+    return float(y1), float(y2)
 
 
 @dataclass
@@ -186,7 +213,7 @@ class TruthModel:
 
 
 NOISE_FIELDS = ("noise_dps", "random_walk_dps_per_sqrt_s", "bias_instability_dps", "flicker_band_s", "gm_dps",
-                "gm_tau_s", "lowpass_hz", "quant_lsb_dps")
+                "gm_tau_s", "lowpass_hz", "quant_lsb_dps", "line_x", "line_y", "line_z")
 """The truth fields ``gyrocal sim --noise NAME=VALUE`` may set (units in their names)."""
 
 
@@ -194,7 +221,9 @@ def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
     """Apply ``NAME=VALUE`` settings (VALUE one number, or x,y,z; flicker_band_s lo,hi) to the model.
 
     E.g. ``random_walk_dps_per_sqrt_s=1e-4``, ``bias_instability_dps=0.0028`` (10 deg/h),
-    ``quant_lsb_dps=0.0076``. Raises ConfigError naming the setting and the fix.
+    ``quant_lsb_dps=0.0076``, ``line_z=31.45,0.13,0.06`` (a narrow-band line on z: centre [Hz], half
+    width [Hz], SD [deg/s]; repeatable, one more line each time). Raises ConfigError naming the
+    setting and the fix.
     """
     scalars = ("noise_dps", "gm_tau_s", "lowpass_hz")
     for item in items or []:
@@ -205,10 +234,13 @@ def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
             vals = [float(v) for v in text.split(",")]
         except ValueError:
             raise ConfigError(f"--noise {item!r}: VALUE must be numbers joined by commas") from None
-        counts = (2,) if name == "flicker_band_s" else (1,) if name in scalars else (1, 3)
+        counts = ((2,) if name == "flicker_band_s" else (3,) if name.startswith("line_")
+                  else (1,) if name in scalars else (1, 3))
         if len(vals) not in counts or not all(math.isfinite(v) and v >= 0 for v in vals):
             raise ConfigError(f"--noise {item!r}: give {' or '.join(map(str, counts))} finite numbers >= 0")
-        if name == "noise_dps":
+        if name.startswith("line_"):
+            model.effects.lines = [*model.effects.lines, ("xyz".index(name[-1]), vals[0], vals[1], vals[2])]
+        elif name == "noise_dps":
             model.noise_dps = vals[0]
         elif name == "flicker_band_s":
             model.effects.flicker_band_s = (vals[0], vals[1])
@@ -262,6 +294,7 @@ class SessionStream:
             drift = drift + walk
         drift = drift + self._noise.flicker(n)
         gyro_noise = self._noise.coloured(self._rng_gyro.normal(0.0, m.noise_dps, (n, 3)))
+        gyro_noise = gyro_noise + self._noise.line_noise(n)
         accel_noise = self._rng_accel.normal(0.0, m.accel_noise_g, (n, 3))
         gyro = self._noise.quantise(omega * (1.0 + m.effects.scale_factor) + drift + gyro_noise)
         accel = g + accel_noise
@@ -293,6 +326,12 @@ class _NoiseState:
         if self.lp_a > 0:
             rng_lp = np.random.default_rng([seed, boot, 6])
             self.lp_y = rng_lp.normal(0.0, 1.0, 3) * model.noise_dps * math.sqrt(self.lp_a / (2 - self.lp_a))
+        self.lines = [(int(k), *ar2_coefficients(f / rate_hz, b / rate_hz), float(sd))
+                      for k, f, b, sd in e.lines if sd > 0]
+        if self.lines:
+            self.rng_ln = np.random.default_rng([seed, boot, 7])
+            # the two last outputs of each line, drawn from the stationary state
+            self.ln_y = [_ar2_stationary(a1, a2, sd, self.rng_ln) for _, a1, a2, sd in self.lines]
         if np.any(self.bi != 0):
             self.rng_fl = np.random.default_rng([seed, boot, 5])
             corr, w = flicker_components(e.flicker_band_s)
@@ -332,6 +371,26 @@ class _NoiseState:
             x = lfilter([1.0], [1.0, -phi], drive, axis=0, zi=(phi * self.gm_x)[None, :])[0]
             self.gm_x = x[-1].copy()
             out = out + x
+        return out
+
+    def line_noise(self, n: int) -> np.ndarray | float:
+        """The narrow-band lines for the next n samples, (n, 3) [deg/s] (states carried)."""
+        if not self.lines:
+            return 0.0
+        from scipy.signal import lfilter, lfiltic  # lazy: the default unit runs on a lean install
+
+        out = np.zeros((n, 3))
+        w = self.rng_ln.normal(0.0, 1.0, (n, len(self.lines)))
+        for j, (k, a1, a2, sd) in enumerate(self.lines):
+            den = [1.0, -a1, -a2]
+            drive = w[:, j] * (sd / math.sqrt(ar2_variance(a1, a2)))
+            y1, y2 = self.ln_y[j]
+            y = lfilter([1.0], den, drive, zi=lfiltic([1.0], den, [y1, y2]))[0]
+            if n >= 2:
+                self.ln_y[j] = (float(y[-1]), float(y[-2]))
+            elif n == 1:
+                self.ln_y[j] = (float(y[-1]), y1)
+            out[:, k] += y
         return out
 
     def quantise(self, gyro: np.ndarray) -> np.ndarray:
