@@ -21,6 +21,12 @@ coldest still temperature, to the board's temperature at the end of the run): ab
 autopilot clamps, and that error is in these figures.
 
     python benchmarks/bench_mavlink.py --quick --json out/bench_mavlink.json
+    python benchmarks/bench_mavlink.py --quick --autopilot px4 --rotation 2   # a board mounted yaw 90
+
+``--rotation N`` starts the virtual autopilot with that board rotation (PX4 SENS_BOARD_ROT, ArduPilot
+AHRS_ORIENTATION): it subtracts its offsets in the sensor frame and rotates its output to the body
+frame; the truth is rotated by the simulator's own rotation (gyrocal/sim/board_rotation.py), so a
+wrong transform in the link shows as a wrong calibration. Figures are per body axis.
 
 ``--ambients 20,30`` runs two warm-ups, 20 -> 50 and 30 -> 60 degC, the autopilot power-cycled in
 between (a hotter day): the range held at the end is the merge of both (docs/mavlink.md), and the
@@ -52,9 +58,10 @@ by the daemon's rank test over a 30 degC warm-up)."""
 
 
 def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path,
-            ambients: tuple[float, ...] = ()) -> dict[str, Any]:
+            ambients: tuple[float, ...] = (), rotation: int = 0) -> dict[str, Any]:
     """One daemon against one virtual autopilot; with ``ambients`` of several values, one warm-up per
-    value, the autopilot power-cycled (SIGUSR1) after each but the last."""
+    value, the autopilot power-cycled (SIGUSR1) after each but the last. ``rotation``: its board
+    rotation (SENS_BOARD_ROT / AHRS_ORIENTATION)."""
     work.mkdir(parents=True, exist_ok=True)
     boots = max(1, len(ambients))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -74,6 +81,8 @@ def run_one(kind: str, tau_s: float, limit_s: float, seed: int, work: Path,
             str(seed),
             "--warmup-tau",
             str(tau_s),
+            "--rotation",
+            str(rotation),
             "--flash",
             str(work / "flash.json"),
             "--status-json",
@@ -163,6 +172,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="fast warm-up (tau 25 s), 180 s limit per autopilot")
     ap.add_argument("--autopilot", choices=("px4", "ardupilot", "both"), default="both")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--rotation",
+        type=int,
+        default=0,
+        metavar="N",
+        help="board rotation of the virtual autopilot (SENS_BOARD_ROT / AHRS_ORIENTATION enum; "
+        "e.g. 2 = yaw 90, 8 = roll 180); the figures are per body axis",
+    )
     ap.add_argument("--json", metavar="OUT.json")
     ap.add_argument("--ambients", default="", metavar="C,C,...",
                     help="one warm-up per value, each from that board temperature [degC] (+30 degC), the "
@@ -176,12 +193,13 @@ def main(argv: list[str] | None = None) -> int:
         "warmup_tau_s": tau,
         "terms": TERMS,
         "seed": args.seed,
+        "rotation": args.rotation,
         "ambients_c": list(ambients),
     }
     with tempfile.TemporaryDirectory(prefix="bench_mavlink_") as tmp_dir:
         tmp = os.environ.get("BENCH_MAVLINK_KEEP") or tmp_dir
         for kind in kinds:
-            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind, ambients)
+            r = run_one(kind, tau, limit, args.seed, Path(tmp) / kind, ambients, args.rotation)
             at = {"boot": r["boots"], "ambients_c": ambients}
             params = r["flash"]["params"]
             prof = PROFILES[kind](0)
@@ -206,8 +224,8 @@ def main(argv: list[str] | None = None) -> int:
                 res["seen"] = {"tmin_c": lo, "tmax_c": round(seen_hi, 2), **seen}
             results[kind] = res
             print(
-                f"{kind}: first push after {res['pushed_after_s']} s; pushes {r['pushes']}; "
-                f"range of the set held at the end {lo:.1f}..{hi:.1f} degC"
+                f"{kind} (board rotation {args.rotation}): first push after {res['pushed_after_s']} s; "
+                f"pushes {r['pushes']}; range of the set held at the end {lo:.1f}..{hi:.1f} degC"
             )
             for i, t in enumerate(res["temps_c"]):
                 print(f"  {t:6.1f} degC  before {res['before_dph'][i]}  after {res['after_dph'][i]} deg/h")

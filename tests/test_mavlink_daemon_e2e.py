@@ -15,6 +15,7 @@ pytest.importorskip("pymavlink")
 from gyrocal.mavlink.poly import evaluate  # noqa: E402
 from gyrocal.mavlink.profiles import ArduPilot  # noqa: E402
 from gyrocal.sim.autopilot import VirtualAutopilot  # noqa: E402
+from gyrocal.sim.autopilot_truth import offset_errors  # noqa: E402
 from tests.sim_helpers import SimProcess, read_status, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -29,7 +30,10 @@ def daemon_status(sock: Path) -> dict:
     return json.loads(out.stdout) if out.returncode == 0 and out.stdout.strip() else {}
 
 
-def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path) -> None:
+def run_daemon_until_acked(tmp_path: Path, *sim_args: str) -> tuple[dict, dict]:
+    """``gyrocal sim --link mavlink --autopilot ardupilot`` (warm-up tau 20 s) and ``gyrocal run`` until
+    the daemon's first acked push; returns the autopilot's parameters then (its status JSON) and the
+    daemon's status."""
     with SimProcess(
         "--link",
         "mavlink",
@@ -41,6 +45,7 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
         "20",
         "--status-json",
         str(tmp_path / "ap.json"),
+        *sim_args,
         tmp_path=tmp_path,
     ) as ap:
         cfg = {
@@ -74,7 +79,11 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
             daemon.terminate()
             daemon.wait(20)
             log.close()
-        params = read_status(tmp_path / "ap.json")["params"]
+        return read_status(tmp_path / "ap.json")["params"], st
+
+
+def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path) -> None:
+    params, _ = run_daemon_until_acked(tmp_path)
     # the offset left over the range the daemon saw, against the truth, before and after
     truth = VirtualAutopilot("ardupilot", 250, 0)
     truth.power_on()
@@ -88,6 +97,23 @@ def test_the_daemon_learns_and_pushes_the_temperature_polynomial(tmp_path: Path)
 
     assert params["INS_TCAL1_TMAX"] - params["INS_TCAL1_TMIN"] > 5.0
     assert np.all(worst(params) < worst(before) / 5), (worst(before) * 3600, worst(params) * 3600)
+
+
+def test_the_daemon_calibrates_a_board_mounted_rotated(tmp_path: Path) -> None:
+    """AHRS_ORIENTATION 10 (roll 180, yaw 90: x and y swapped, z flipped). The virtual autopilot
+    subtracts in the sensor frame and rotates its output by its own transcription of ArduPilot's
+    Vector3::rotate; the truth is rotated the same way (autopilot_truth), so an unrotated or wrongly
+    rotated push would leave the error, not cut it."""
+    params, st = run_daemon_until_acked(tmp_path, "--rotation", "10")
+    assert params["AHRS_ORIENTATION"] == 10
+    assert st["last_push"]["board_rotation"] == {"AHRS_ORIENTATION": 10.0}  # in the store record too
+    assert params["INS_TCAL1_TMAX"] - params["INS_TCAL1_TMIN"] > 5.0
+    temps = np.linspace(params["INS_TCAL1_TMIN"], params["INS_TCAL1_TMAX"], 5)
+    res = offset_errors("ardupilot", 0, params, temps)
+    assert res["board_rotation"] == 10
+    assert min(res["improvement_x"]) > 5.0, res
+    state = json.loads((tmp_path / "state" / "mavlink.json").read_text())
+    assert [u["rotation"] for u in state["units"].values()] == [{"AHRS_ORIENTATION": 10.0}]
 
 
 def test_demo_mavlink_calibrates_a_virtual_px4_and_says_it_needs_a_reboot() -> None:

@@ -5,6 +5,11 @@ Nothing from gyrocal.sim or gyrocal.mavlink is used on the peer side: the peer's
 re-typed from the parameter docs (PX4 TC_G*: offset = sum X_k (T - TREF)^k, rad/s, subtracted;
 ArduPilot INS_TCAL*: 1e-6 rad/s units about 35 degC, relative to INS_GYR1_CALTEMP, then
 INS_GYROFFS subtracted). It also sends a ground station's heartbeat, which the link must ignore.
+
+Board rotation, from the parameter documentation (PX4 SENS_BOARD_ROT "2: Yaw 90°"; ArduPilot
+AHRS_ORIENTATION "8: Roll180") and the order both autopilots document (offsets subtracted in the
+sensor frame, then the board rotation into the body frame): the peer's output is
+``body = board_to_body(raw - subtracted)``, with the two rotations written out by hand below.
 """
 
 from __future__ import annotations
@@ -26,7 +31,15 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from gyrocal.daemon.ring import RingBuffer  # noqa: E402
 from gyrocal.mavlink.link import MavlinkLink  # noqa: E402
-from gyrocal.protocol.messages import CoeffAck, CoeffNak, CoeffRead, CoeffReport, CoeffWrite, Hello  # noqa: E402
+from gyrocal.protocol.messages import (  # noqa: E402
+    CoeffAck,
+    CoeffNak,
+    CoeffRead,
+    CoeffReport,
+    CoeffWrite,
+    Hello,
+    NakReason,
+)
 from gyrocal.protocol.termsets import terms_id  # noqa: E402
 from tests.sim_helpers import free_udp_port, wait_for  # noqa: E402
 
@@ -38,11 +51,25 @@ Q = np.array([[0.05, 1e-3, -2e-5, 3e-7], [-0.02, -5e-4, 1e-5, 0.0], [0.01, 2e-4,
 REAL32, INT8, INT32 = mav.MAV_PARAM_TYPE_REAL32, mav.MAV_PARAM_TYPE_INT8, mav.MAV_PARAM_TYPE_INT32
 
 
+def board_to_body(rotation: int, v: np.ndarray) -> np.ndarray:
+    """Sensor (board) frame -> body frame for the two mountings the test uses, by hand: yaw 90 turns the
+    board's x axis to the body's y axis (and its y to body -x); roll 180 turns it upside down."""
+    x, y, z = v
+    if rotation == 0:
+        return np.array([x, y, z])
+    if rotation == 2:  # yaw 90
+        return np.array([-y, x, z])
+    if rotation == 8:  # roll 180
+        return np.array([x, -y, -z])
+    raise ValueError(rotation)
+
+
 class Peer:
     """An autopilot on UDP: heartbeat, AUTOPILOT_VERSION, an IMU stream on request, PARAM_SET/READ."""
 
-    def __init__(self, flavour: str, port: int) -> None:
+    def __init__(self, flavour: str, port: int, rotation: int = 0) -> None:
         self.flavour = flavour
+        self.rotation = rotation
         self.sysid = 42
         self.m = mav.MAVLink(None, srcSystem=self.sysid, srcComponent=1)
         self.gcs = mav.MAVLink(None, srcSystem=255, srcComponent=190)
@@ -55,7 +82,9 @@ class Peer:
             self.params["TC_G_ENABLE"] = (1, INT32)
             self.params["TC_G0_ID"] = (0, INT32)
             self.params["CAL_GYRO0_ID"] = (33554433, INT32)  # 2**25 + 1: only a bytewise int keeps it
-            self.params["SENS_BOARD_ROT"] = (0, INT32)
+            self.params["SENS_BOARD_ROT"] = (rotation, INT32)
+            for a in "XYZ":  # the board level adjustment [deg], 0 unless the board is trimmed
+                self.params[f"SENS_BOARD_{a}_OFF"] = (0.0, REAL32)
             for n in ("TREF", "TMIN", "TMAX"):
                 self.params[f"TC_G0_{n}"] = (0.0, REAL32)
             for k in range(4):
@@ -65,7 +94,7 @@ class Peer:
                 self.params[f"CAL_GYRO0_{a}OFF"] = (0.0, REAL32)
         else:
             self.params["INS_TCAL1_ENABLE"] = (0, INT8)
-            self.params["AHRS_ORIENTATION"] = (0, INT8)
+            self.params["AHRS_ORIENTATION"] = (rotation, INT8)
             self.params["INS_GYR1_CALTEMP"] = (24.0, REAL32)
             for n in ("TMIN", "TMAX"):
                 self.params[f"INS_TCAL1_{n}"] = (0.0, REAL32)
@@ -77,6 +106,7 @@ class Peer:
         self.stream_hz = 0.0
         self.temp_c = 20.0
         self.stop = threading.Event()
+        self.reboot = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
 
     # the wire encoding of a parameter value (PX4 bytewise ints, ArduPilot C cast)
@@ -97,8 +127,12 @@ class Peer:
     def p(self, name: str) -> float:
         return self.params[name][0]
 
+    def subtracted_body_dps(self, temp: float) -> np.ndarray:
+        """What the firmware subtracts at temp [deg/s], as seen in its body-frame output."""
+        return board_to_body(self.rotation, self.subtracted_dps(temp))
+
     def subtracted_dps(self, temp: float) -> np.ndarray:
-        """What the firmware subtracts at temp [deg/s], from its documented semantics."""
+        """What the firmware subtracts at temp [deg/s], in its sensor frame, from its documented semantics."""
         out = np.zeros(3)
         if self.flavour == "px4":
             if self.p("TC_G_ENABLE") == 1 and self.p("TC_G0_ID") == self.p("CAL_GYRO0_ID"):
@@ -128,6 +162,9 @@ class Peer:
         next_hb = next_imu = 0.0
         autopilot = mav.MAV_AUTOPILOT_PX4 if self.flavour == "px4" else mav.MAV_AUTOPILOT_ARDUPILOTMEGA
         while not self.stop.is_set():
+            if self.reboot.is_set():  # a new boot: its clock starts from 0 again
+                self.reboot.clear()
+                t0, next_hb, next_imu = time.monotonic(), 0.0, 0.0
             t = time.monotonic() - t0
             self.temp_c = 20.0 + 30.0 * t / 20.0 if t < 20 else 50.0
             if t >= next_hb:
@@ -140,7 +177,7 @@ class Peer:
             if self.stream_hz and t >= next_imu:
                 next_imu = t + 1.0 / self.stream_hz
                 raw = np.array([0.1, -0.2, 0.05]) + Q @ self.temp_c ** np.arange(4)  # deg/s
-                g = (raw - self.subtracted_dps(self.temp_c)) * RAD
+                g = board_to_body(self.rotation, raw - self.subtracted_dps(self.temp_c)) * RAD
                 if self.flavour == "px4":
                     self.send(
                         mav.MAVLink_highres_imu_message(
@@ -220,8 +257,14 @@ class Peer:
             )
 
 
-@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
-def test_an_independent_peer_is_calibrated_by_its_documented_parameters(flavour: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "flavour,rotation",
+    [("px4", 0), ("ardupilot", 0), ("px4", 2), ("ardupilot", 8)],
+    ids=["px4", "ardupilot", "px4-yaw90", "ardupilot-roll180"],
+)
+def test_an_independent_peer_is_calibrated_by_its_documented_parameters(
+    flavour: str, rotation: int, tmp_path: Path
+) -> None:
     port = free_udp_port()
     ctl: list[object] = []
     ring = RingBuffer(1 << 15)
@@ -233,7 +276,7 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(flavour:
         rate_hz=100,
         param_timeout_s=0.3,
     )
-    peer = Peer(flavour, port)
+    peer = Peer(flavour, port, rotation)
     peer.thread.start()
     link.start()
     try:
@@ -244,7 +287,8 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(flavour:
         link.send(CoeffWrite(9, POLY_ID, Q))
         assert wait_for(lambda: any(isinstance(m, CoeffAck | CoeffNak) for m in ctl), 15)
         assert [m for m in ctl if isinstance(m, CoeffAck | CoeffNak)][0].__class__ is CoeffAck, ctl
-        # the peer now subtracts Q (inside the range it saw) by its own reading of the parameters
+        # the peer now subtracts Q (inside the range it saw, in its body-frame output) by its own
+        # reading of the parameters
         lo, hi = (
             peer.p("TC_G0_TMIN" if flavour == "px4" else "INS_TCAL1_TMIN"),
             peer.p("TC_G0_TMAX" if flavour == "px4" else "INS_TCAL1_TMAX"),
@@ -254,15 +298,69 @@ def test_an_independent_peer_is_calibrated_by_its_documented_parameters(flavour:
             assert peer.p("TC_G0_ID") == 33554433  # survived the bytewise encoding
         for temp in np.linspace(lo, hi, 5):
             want = Q @ temp ** np.arange(4)
-            assert np.allclose(peer.subtracted_dps(temp), want, atol=1e-5), (
+            assert np.allclose(peer.subtracted_body_dps(temp), want, atol=1e-5), (
                 temp,
-                peer.subtracted_dps(temp),
+                peer.subtracted_body_dps(temp),
                 want,
             )
+        if rotation:  # the sensor-frame parameters differ from the body-frame set: they were rotated
+            assert not np.allclose(peer.subtracted_dps(hi), Q @ hi ** np.arange(4), atol=1e-3)
         link.send(CoeffRead())
         assert wait_for(lambda: any(isinstance(m, CoeffReport) for m in ctl), 10)
         rep = [m for m in ctl if isinstance(m, CoeffReport)][-1]
         assert rep.version == 9 and np.array_equal(np.asarray(rep.coeffs_dps), Q)
+        if rotation:
+            # the board is remounted level (a ground station writes rotation 0): the sensor-frame set
+            # now means something else in the body frame, so it is no longer our v9 but a foreign
+            # set, reported as what the peer really subtracts now
+            name = "SENS_BOARD_ROT" if flavour == "px4" else "AHRS_ORIENTATION"
+            peer.params[name] = (0, peer.params[name][1])
+            peer.rotation = 0
+            link.send(CoeffRead())
+            assert wait_for(lambda: len([m for m in ctl if isinstance(m, CoeffReport)]) == 2, 10)
+            rep = [m for m in ctl if isinstance(m, CoeffReport)][-1]
+            assert rep.version == 0
+            for temp in np.linspace(lo, hi, 3):
+                got = np.asarray(rep.coeffs_dps) @ temp ** np.arange(4)
+                assert np.allclose(got, peer.subtracted_body_dps(temp), atol=1e-5)
+    finally:
+        link.stop()
+        peer.stop.set()
+        peer.thread.join(2)
+        peer.sock.close()
+
+
+def test_a_rotation_gyrocal_cannot_map_is_one_clear_fault_until_fixed(tmp_path: Path) -> None:
+    """AHRS_ORIENTATION 100 (ROTATION_CUSTOM_OLD, documented as the old custom rotation): one error naming
+    it, no Hello, pushes NAKed. Set to 8 (Roll180) and rebooted, the unit is served and calibrated."""
+    port = free_udp_port()
+    ctl: list[object] = []
+    events: list[tuple[str, str]] = []
+    link = MavlinkLink(
+        f"udpin:127.0.0.1:{port}",
+        RingBuffer(1 << 15),
+        ctl.append,
+        lambda name, detail: events.append((name, detail)),
+        state_file=str(tmp_path / "s.json"),
+        rate_hz=100,
+        param_timeout_s=0.3,
+    )
+    peer = Peer("ardupilot", port)
+    peer.params["AHRS_ORIENTATION"] = (100, INT8)
+    peer.thread.start()
+    link.start()
+    try:
+        assert wait_for(lambda: link.fault is not None, 15)
+        assert "AHRS_ORIENTATION = 100" in link.fault and "AHRS_CUSTOM_ROLL" in link.fault
+        assert [e for e in events if e[0] == "unit_error"] and not any(isinstance(m, Hello) for m in ctl)
+        link.send(CoeffWrite(3, POLY_ID, Q))
+        assert wait_for(lambda: any(isinstance(m, CoeffNak) for m in ctl), 5)
+        assert [m for m in ctl if isinstance(m, CoeffNak)][0].reason == int(NakReason.UNKNOWN_TERMS)
+        peer.params["AHRS_ORIENTATION"] = (8, INT8)  # a ground station fixes it; it applies at the reboot
+        peer.rotation = 8
+        peer.reboot.set()
+        assert wait_for(lambda: any(isinstance(m, Hello) for m in ctl), 15), link.fault
+        assert link.fault is None and link.board_rotation == {"AHRS_ORIENTATION": 8.0}
     finally:
         link.stop()
         peer.stop.set()

@@ -43,6 +43,9 @@ class UnitCapabilities:
     max_terms: int = MAX_TERMS
     reboot_required: bool | None = False
     clamps_temperature: bool = False
+    board_rotation: dict[str, float] | None = None
+    """The unit's board rotation parameters when it holds its set in a frame turned from the samples'
+    (an autopilot: sensor vs body frame, docs/mavlink.md "Board rotation"); recorded with each push."""
 
     def holds(self, names: list[str] | tuple[str, ...]) -> bool:
         if len(names) > self.max_terms:
@@ -59,13 +62,32 @@ class UnitCapabilities:
         return max(fits, key=len) if fits else None
 
     def as_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "max_terms": self.max_terms, "reboot_required": self.reboot_required,
-                "clamps_temperature": self.clamps_temperature,
-                "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
+        out = {"kind": self.kind, "max_terms": self.max_terms, "reboot_required": self.reboot_required,
+               "clamps_temperature": self.clamps_temperature,
+               "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
+        if self.board_rotation is not None:
+            out["board_rotation"] = dict(self.board_rotation)
+        return out
 
 
 PROTOCOL = UnitCapabilities()
 """Our own protocol (docs/protocol.md): any registered term set of up to 21 terms."""
+
+
+def frame_changed(caps: UnitCapabilities, prior: Any) -> str | None:
+    """Why a stored set must not warm-start this switch-on's session, or None.
+
+    An autopilot's samples are in its body frame, and the stored set and its temperature information
+    (learner.py) were learnt in the body frame of the board rotation recorded with its push
+    (``push.board_rotation``). The sensor's thermal curve is fixed to the board, so after a remount (a
+    changed SENS_BOARD_ROT / AHRS_ORIENTATION) it appears turned in the body frame: the old set would
+    be a wrong prior. A record without a recorded rotation (older, or our protocol's unit) is kept.
+    """
+    was = (getattr(prior, "push", None) or {}).get("board_rotation")
+    now = caps.board_rotation
+    if prior is None or was is None or now is None or dict(was) == dict(now):
+        return None
+    return f"the board rotation changed since v{prior.version} was learnt ({was} -> {now})"
 
 
 def of_link(link: Any) -> UnitCapabilities:

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from gyrocal.daemon.capabilities import of_link
+from gyrocal.daemon.capabilities import frame_changed, of_link
 from gyrocal.daemon.commands import CommandsMixin
 from gyrocal.daemon.config import DaemonConfig
 from gyrocal.daemon.control import ControlServer
@@ -380,13 +380,18 @@ class Engine(CommandsMixin):
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
         prior = self.store.latest(hello.serial, acked_only=True)
+        caps = of_link(self.link)  # what this unit holds, as of its HELLO
+        moved = frame_changed(caps, prior)
+        if moved:  # a remounted autopilot: its stored set is in another body frame (capabilities.py)
+            log.warning("unit %d: %s; starting cold", hello.serial, moved)
+            prior = None
         rate = float(hello.rate_hz) if getattr(hello, "rate_hz", 0) else (self.rate_hz or 1000.0)
         learner = make_learner(self.cfg, prior, rate)
         self.detector = self._new_detector(rate)
         self._seq_session_at = None
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version,
-                               caps=of_link(self.link))  # what this unit holds, as of its HELLO
+                               caps=caps)
         self.sessions_started += 1
         if old is not None:  # push results the store could not take yet: carried over, not lost
             self.session.unrecorded.extend(old.unrecorded)

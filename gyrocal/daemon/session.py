@@ -709,6 +709,8 @@ class Session(RecoveryMixin):
             self._push_prediction = {}
         if result.status == "acked" and self.caps.reboot_required:
             self.last_push["reboot_required"] = True  # in the store record of the push too
+        if result.status == "acked" and self.caps.board_rotation is not None:
+            self.last_push["board_rotation"] = dict(self.caps.board_rotation)  # the frame it was written in
         self._store_push(version, dict(self.last_push), now)
         if result.status == "acked":
             proj, self._projection = self._projection, None

@@ -119,7 +119,16 @@ class MavlinkLink(UnitRequests, Link):
         for a reboot, as known now (read by the daemon at each switch-on's HELLO)."""
         name = self.profile.name if self.profile is not None else "autopilot"
         return UnitCapabilities(f"mavlink {name}", tuple(self.term_sets.values()), len(TEMP_POLY3_TERMS),
-                                self.reboot_required, clamps_temperature=True)
+                                self.reboot_required, clamps_temperature=True,
+                                board_rotation=self.board_rotation)
+
+    @property
+    def board_rotation(self) -> dict[str, float] | None:
+        """The board rotation parameters as last read (None before the first read): the autopilot holds
+        its offsets in the sensor frame they define (docs/mavlink.md "Board rotation")."""
+        if self.profile is None or not self._params:
+            return None
+        return self.profile.rotation_of(self._params)
 
     @property
     def term_sets(self) -> dict[int, tuple[str, ...]]:
@@ -178,6 +187,7 @@ class MavlinkLink(UnitRequests, Link):
             "fault": self.fault,
             "imu_source": self._source,
             "reboot_required": self.reboot_required,
+            "board_rotation": self.board_rotation,
         }
 
     def _receive(self) -> list[Any]:

@@ -8,6 +8,12 @@ the autopilot applies one by one:
     read context -> ENABLE=0 -> write each coefficient (confirm each echo) -> read all back (verify)
     -> ENABLE=1 -> read the whole set back
 
+The coefficients are written in the autopilot's sensor frame, rotated by the board rotation read in
+the context (profiles.py). The verify read and the final read include the rotation parameters again:
+a rotation changed during the push (a ground station writing SENS_BOARD_ROT/AHRS_ORIENTATION) would
+make the written set wrong, so it is then never enabled (verify), or disabled again (final read),
+and the push fails naming the change.
+
 With compensation disabled the autopilot never evaluates a half-written set (PX4 reloads TC_Gn_*
 only while TC_G_ENABLE=1; ArduPilot's correct_sensor returns at once unless ENABLE=1). A failure
 after ENABLE=0 restores the previous coefficients and re-enables them only when every one is
@@ -68,7 +74,7 @@ class OpRunner:
         self, profile: Profile, send: Callable[[object], None], timeout_s: float, retries: int
     ) -> None:
         self.profile, self.send = profile, send
-        self.types = profile.types()
+        self.types = profile.types()  # grows with extra_context() parameters as they are asked for
         self.timeout_s, self.retries = timeout_s, retries
         self.values: dict[str, float] = {}
         self.error: str | None = None
@@ -85,6 +91,17 @@ class OpRunner:
     def start(self, ops: list[_Op], now: float) -> None:
         self._ops, self.error, self.rejected = list(ops), None, False
         self._issue(now, first=True)
+
+    def read_extra(self, now: float) -> bool:
+        """After a full read: ask for the profile's extra_context parameters not read yet (once).
+        Returns True when it started reads (the caller waits for ``done`` again)."""
+        extra = [q for q in self.profile.extra_context(self.values) if q.name not in self.values]
+        if not extra or self.error:
+            return False
+        for q in extra:
+            self.types[q.name] = q.ptype
+        self.start([_Op(q.name) for q in extra], now)
+        return True
 
     def _issue(self, now: float, first: bool) -> None:
         if not self._ops:
@@ -176,8 +193,11 @@ class ParamPush:
         self.outcome: PushOutcome | None = None
         self.before: dict[str, float] = {}
         self.target: dict[str, float] = {}
+        self.rotation: dict[str, float] = {}
+        """The board rotation parameters the set was written for (read in the context)."""
         self._fail: tuple[str, int] | None = None
         self._restored = False
+        self._extra_asked: set[Phase] = set()
         self.io.start([_Op(p.name) for p in profile.all_params()], now)
 
     @property
@@ -204,11 +224,29 @@ class ParamPush:
             self.outcome = PushOutcome(False, reason, int(NakReason.BUSY), dict(self.io.values), self.target)
 
     # -- phases ---------------------------------------------------------------------------------
+    def _rotation_changed(self) -> str:
+        """'' when the rotation read now equals the one the set was written for, else what changed."""
+        now = {k: self.io.values.get(k) for k in self.profile.rotation_names(self.io.values)}
+        if now == self.rotation:
+            return ""
+        return (
+            f"the board rotation changed during the push ({self.rotation} -> {now}): the set was written "
+            "for the old one"
+        )
+
     def _advance(self, now: float) -> None:
         if not self.io.done:
             return
         err = self.io.error
         p = self.profile
+        if (
+            not err
+            and self.phase in (Phase.READ_CONTEXT, Phase.VERIFY, Phase.READ_BACK)
+            and self.phase not in self._extra_asked
+        ):
+            self._extra_asked.add(self.phase)  # e.g. CUST_ROTn_* once AHRS_ORIENTATION is known
+            if self.io.read_extra(now):
+                return
         if self.phase is Phase.READ_CONTEXT:
             if err:
                 return self._finish(False, err, NakReason.UNKNOWN_TERMS)
@@ -218,8 +256,17 @@ class ParamPush:
                 return self._finish(
                     False, why, NakReason.OUT_OF_RANGE if "offset" in why else NakReason.UNKNOWN_TERMS
                 )
+            self.rotation = {k: self.before.get(k) for k in p.rotation_names(self.before)}  # type: ignore[misc]
             self.target = p.to_params(self.q, self.before, self.tmin, self.tmax)
             self._go(Phase.DISABLE, [_Op(p.enable.name, 0.0)], now)
+        elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE) and (
+            self._rotation_changed()
+        ):
+            # the rotation moved (and its new parameters could not all be read): neither the new set
+            # nor the old one fits the new frame, so compensation stays off
+            self._fail = (self._rotation_changed(), int(NakReason.BUSY))
+            log.error("push failed in phase %s: %s; compensation left off", self.phase.value, err)
+            self._go(Phase.RESTORE_ENABLE, [], now)
         elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE):
             self._fail = (err, int(NakReason.OUT_OF_RANGE if self.io.rejected else NakReason.BUSY))
             log.error("push failed in phase %s: %s; restoring the previous set", self.phase.value, err)
@@ -231,10 +278,18 @@ class ParamPush:
         elif self.phase is Phase.DISABLE:
             self._go(Phase.WRITE, [_Op(k, v) for k, v in self.target.items()], now)
         elif self.phase is Phase.WRITE:
-            self._go(Phase.VERIFY, [_Op(k) for k in self.target], now)
+            rot = [_Op(k) for k in p.rotation_names(self.before) if k not in self.target]
+            self._go(Phase.VERIFY, [_Op(k) for k in self.target] + rot, now)
         elif self.phase is Phase.VERIFY:
             bad = [k for k, v in self.target.items() if self.io.values.get(k) != v]
-            if bad:
+            moved = self._rotation_changed()
+            if moved:
+                # compensation is off (ENABLE=0 was confirmed): neither the new set nor the old one,
+                # both written for the old rotation, is enabled again
+                log.error("push stopped before enabling: %s; compensation left off", moved)
+                self._fail = (moved, int(NakReason.BUSY))
+                self._go(Phase.RESTORE_ENABLE, [], now)
+            elif bad:
                 self._fail = (f"read-back differs for {', '.join(bad)}", int(NakReason.OUT_OF_RANGE))
                 self._go(
                     Phase.RESTORE,
@@ -246,8 +301,14 @@ class ParamPush:
         elif self.phase is Phase.ENABLE:
             self._go(Phase.READ_BACK, [_Op(x.name) for x in p.all_params()], now)
         elif self.phase is Phase.READ_BACK:
-            if err:
+            moved = self._rotation_changed()
+            if err and not moved:
                 return self._finish(False, f"final read-back: {err}", NakReason.BUSY)
+            if moved:
+                log.error("final read-back: %s; disabling compensation", moved)
+                self._fail = (moved, int(NakReason.BUSY))
+                self._go(Phase.RESTORE_ENABLE, [_Op(p.enable.name, 0.0)], now)
+                return
             ok = p.is_enabled(self.io.values) and all(
                 self.io.values.get(k) == v for k, v in self.target.items()
             )
@@ -261,7 +322,8 @@ class ParamPush:
         elif self.phase is Phase.RESTORE_ENABLE:
             self._restored = self._restored and err is None
             self.phase = Phase.FAILED
-            self.io.start([_Op(x.name) for x in p.all_params()], now)
+            extra = [_Op(x.name) for x in p.extra_context(self.io.values)]
+            self.io.start([_Op(x.name) for x in p.all_params()] + extra, now)
         elif self.phase is Phase.FAILED:
             reason, nak = self._fail or ("push failed", int(NakReason.BUSY))
             self.outcome = PushOutcome(
@@ -294,10 +356,16 @@ class ParamReadAll:
         self.profile = profile
         self.io = OpRunner(profile, send, timeout_s, retries)
         self.io.start([_Op(p.name) for p in profile.all_params()], now)
+        self._extra_asked = False
 
     @property
     def finished(self) -> bool:
         return self.io.done
+
+    def _more(self, now: float) -> None:
+        if self.io.done and not self._extra_asked:
+            self._extra_asked = True
+            self.io.read_extra(now)  # e.g. CUST_ROTn_* once AHRS_ORIENTATION says a custom rotation
 
     @property
     def error(self) -> str | None:
@@ -309,6 +377,8 @@ class ParamReadAll:
 
     def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
         self.io.on_value(name, wire, ptype, now)
+        self._more(now)
 
     def tick(self, now: float) -> None:
         self.io.tick(now)
+        self._more(now)

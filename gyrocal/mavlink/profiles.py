@@ -12,6 +12,12 @@ between Q and the autopilot's parameters, in both directions:
   [TMIN, TMAX], and the link adds it to each sample so that the daemon's reconstruction stays exact
   outside that range too.
 
+Frames: Q is in the BODY frame (the IMU messages' frame, where the daemon learns it); both autopilots
+hold and subtract their offsets in the SENSOR (board) frame and rotate the result into the body frame
+afterwards (``body = R @ (sensor - offset_sensor)``, R from the board rotation parameters,
+gyrocal/mavlink/rotation.py). So ``to_params`` writes ``R.T @ Q`` and ``applied`` returns
+``R @ offset_sensor``, power by power; ``sensor_q`` gives the sensor-frame polynomial unrotated.
+
 Sources (docs/mavlink.md has the detail):
 
 - PX4: src/modules/temperature_compensation/TemperatureCompensation.cpp (``calc_thermal_offsets_3D``:
@@ -32,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gyrocal.mavlink.poly import DEG_PER_RAD, shift
+from gyrocal.mavlink.rotation import RotationError, ardupilot_board_matrix, px4_board_matrix
 
 REAL32, INT8, INT32 = 9, 2, 6
 """MAV_PARAM_TYPE values used here."""
@@ -106,6 +113,44 @@ class Profile(ABC):
 
     def all_params(self) -> list[Param]:
         return [self.enable, *self.coeffs, *self.context]
+
+    def extra_context(self, p: Mapping[str, float]) -> list[Param]:
+        """Parameters to read as well once ``p`` (a read of ``all_params``) is known: those that exist
+        only in some configurations (ArduPilot's CUST_ROTn_* with a custom AHRS_ORIENTATION)."""
+        return []
+
+    @abstractmethod
+    def rotation_names(self, p: Mapping[str, float]) -> list[str]:
+        """The parameters that define the board rotation given ``p`` (compared before and after a push)."""
+
+    @abstractmethod
+    def board_matrix(self, p: Mapping[str, float]) -> np.ndarray:
+        """R (3, 3): body = R @ sensor, from the board rotation parameters in ``p``.
+        Raises :class:`~gyrocal.mavlink.rotation.RotationError` for a value it cannot map."""
+
+    def rotation_of(self, p: Mapping[str, float]) -> dict[str, float]:
+        """The board rotation parameters' values in ``p`` (recorded with a pushed set)."""
+        return {k: float(p[k]) for k in self.rotation_names(p) if k in p}
+
+    def _r(self, p: Mapping[str, float]) -> np.ndarray:
+        try:
+            return self.board_matrix(p)
+        except RotationError:
+            return np.eye(3)  # only reached for a read the link already refuses (problem())
+
+    def sensor_q(self, q_body: np.ndarray, p: Mapping[str, float]) -> np.ndarray:
+        """The sensor-frame polynomial the autopilot must hold to subtract ``q_body`` in the body frame."""
+        return self.board_matrix(p).T @ np.asarray(q_body, dtype=np.float64)
+
+    def rotation_problem(self, p: Mapping[str, float]) -> str | None:
+        try:
+            self.board_matrix(p)
+        except RotationError as err:
+            return (
+                f"{err}; {self.name} applies its gyro offsets in the sensor frame and the IMU messages "
+                "are in the body frame"
+            )
+        return None
 
     def types(self) -> dict[str, int]:
         return {p.name: p.ptype for p in self.all_params()}
@@ -183,11 +228,26 @@ class Px4(Profile):
             Param(self.p_cal_id, INT32),
             *(Param(n) for n in self.p_cal_off),
             Param("SENS_BOARD_ROT", INT32),
+            *(Param(n) for n in self.P_LEVEL),
         ]
+
+    P_LEVEL = ("SENS_BOARD_X_OFF", "SENS_BOARD_Y_OFF", "SENS_BOARD_Z_OFF")
+    """The board level adjustment [deg] (Euler roll, pitch, yaw) PX4 applies after SENS_BOARD_ROT."""
+
+    def rotation_names(self, p: Mapping[str, float]) -> list[str]:
+        return ["SENS_BOARD_ROT", *self.P_LEVEL]
+
+    def board_matrix(self, p: Mapping[str, float]) -> np.ndarray:
+        # Gyroscope::set_rotation: Dcmf(GetSensorLevelAdjustment()) * get_rot_matrix(GetBoardRotation())
+        level = tuple(float(p.get(n, 0.0)) for n in self.P_LEVEL)
+        return px4_board_matrix(float(p.get("SENS_BOARD_ROT", 0.0)), level)  # type: ignore[arg-type]
 
     @property
     def durable(self) -> list[str]:
-        return [self.enable.name, *(p.name for p in self.coeffs), *self.p_cal_off]
+        # the rotation is part of what a set means: a changed rotation is another (foreign) set
+        return [
+            self.enable.name, *(p.name for p in self.coeffs), *self.p_cal_off, "SENS_BOARD_ROT", *self.P_LEVEL
+        ]
 
     def _caloff_rad(self, p: Mapping[str, float]) -> np.ndarray:
         return np.array([p.get(n, 0.0) for n in self.p_cal_off])
@@ -196,7 +256,7 @@ class Px4(Profile):
         self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float
     ) -> dict[str, float]:
         tref = round(tmin + tmax) / 2.0  # a half degree: exact in float32, central for conditioning
-        a = shift(np.asarray(q_dps, dtype=np.float64) / DEG_PER_RAD, tref)
+        a = shift(self.sensor_q(q_dps, ctx) / DEG_PER_RAD, tref)  # body -> sensor frame, then about TREF
         a[:, 0] -= self._caloff_rad(ctx)  # CAL_GYROn_xOFF is subtracted as well; it stays as it is
         out = {
             self.p_id: float(ctx.get(self.p_cal_id, 0.0)),
@@ -222,7 +282,7 @@ class Px4(Profile):
         a = self._a(p) if self._thermal_on(p) else np.zeros((3, 4))
         a[:, 0] += self._caloff_rad(p)
         tref = p.get(self.p_tref, 0.0) if self._thermal_on(p) else 0.0
-        return shift(a, -tref) * DEG_PER_RAD
+        return self._r(p) @ shift(a, -tref) * DEG_PER_RAD  # sensor -> body frame
 
     def clamp_adjust(self, p: Mapping[str, float], temp_c: np.ndarray) -> np.ndarray:
         temp_c = np.asarray(temp_c, dtype=np.float64)
@@ -233,14 +293,12 @@ class Px4(Profile):
         a, tref = self._a(p), p[self.p_tref]
         d = temp_c - tref
         dc = np.clip(temp_c, p[self.p_tmin], p[self.p_tmax]) - tref
-        return (evaluate(a, dc) - evaluate(a, d)) * DEG_PER_RAD
+        return (evaluate(a, dc) - evaluate(a, d)) @ self._r(p).T * DEG_PER_RAD
 
     def problem(self, p: Mapping[str, float]) -> str | None:
-        if p.get("SENS_BOARD_ROT", 0.0) != 0.0:
-            return (
-                "SENS_BOARD_ROT is not 0: PX4 applies TC_G offsets in the sensor frame and HIGHRES_IMU is "
-                "in the body frame; gyrocal does not rotate coefficients yet"
-            )
+        why = self.rotation_problem(p)
+        if why:
+            return why
         if not p.get(self.p_cal_id):
             return f"{self.p_cal_id} is 0: PX4 does not know this gyro's device id (run a gyro calibration)"
         return None
@@ -288,10 +346,32 @@ class ArduPilot(Profile):
     def context(self) -> list[Param]:
         return [Param(self.p_caltemp), Param("AHRS_ORIENTATION", INT8)]
 
+    @staticmethod
+    def _custom(p: Mapping[str, float]) -> list[str]:
+        rot = p.get("AHRS_ORIENTATION", 0.0)
+        if rot in (101.0, 102.0):  # ROTATION_CUSTOM_1/2: AP_CustomRotations, CUST_ROTn_{ROLL,PITCH,YAW} [deg]
+            n = int(rot) - 100
+            return [f"CUST_ROT{n}_ROLL", f"CUST_ROT{n}_PITCH", f"CUST_ROT{n}_YAW"]
+        return []
+
+    def extra_context(self, p: Mapping[str, float]) -> list[Param]:
+        return [Param(n) for n in self._custom(p)]
+
+    def rotation_names(self, p: Mapping[str, float]) -> list[str]:
+        return ["AHRS_ORIENTATION", *self._custom(p)]
+
+    def board_matrix(self, p: Mapping[str, float]) -> np.ndarray:
+        # _rotate_and_correct_gyro: tcal, then -= gyro offset, then gyro.rotate(_board_orientation)
+        names = self._custom(p)
+        rpy = tuple(float(p[n]) for n in names) if names and all(n in p for n in names) else None
+        return ardupilot_board_matrix(float(p.get("AHRS_ORIENTATION", 0.0)), rpy)  # type: ignore[arg-type]
+
     @property
     def durable(self) -> list[str]:
-        # INS_GYROFFS and CALTEMP are re-measured at each boot's gyro calibration (INS_GYR_CAL=1)
-        return [self.enable.name, self.p_tmin, self.p_tmax, *(x for row in self.p_g for x in row)]
+        # INS_GYROFFS and CALTEMP are re-measured at each boot's gyro calibration (INS_GYR_CAL=1); the
+        # rotation is part of what a set means (a changed rotation makes it a foreign set)
+        return [self.enable.name, self.p_tmin, self.p_tmax, *(x for row in self.p_g for x in row),
+                "AHRS_ORIENTATION"]
 
     def _tcal(self, p: Mapping[str, float], tmin: float, tmax: float) -> float:
         return float(np.clip(p.get(self.p_caltemp, -300.0), tmin, tmax))
@@ -307,7 +387,7 @@ class ArduPilot(Profile):
     def to_params(
         self, q_dps: np.ndarray, ctx: Mapping[str, float], tmin: float, tmax: float
     ) -> dict[str, float]:
-        a = shift(np.asarray(q_dps, dtype=np.float64) / DEG_PER_RAD, self.TREF_C)
+        a = shift(self.sensor_q(q_dps, ctx) / DEG_PER_RAD, self.TREF_C)  # body -> sensor frame, about 35
         g = np.array([[f32(v) for v in row] for row in a[:, 1:] * self.SCALE])
         tmin32, tmax32 = f32(tmin), f32(tmax)
         # the constant goes to INS_GYROFFS: offset = GYROFFS + P(T-35) - P(Tcal-35) must equal a0 + P(T-35)
@@ -328,7 +408,7 @@ class ArduPilot(Profile):
             tcal = self._tcal(p, p[self.p_tmin], p[self.p_tmax])
             off = off - self._poly(g, np.array([tcal - self.TREF_C]))[0]
         a[:, 0] = off
-        return shift(a, -self.TREF_C) * DEG_PER_RAD
+        return self._r(p) @ shift(a, -self.TREF_C) * DEG_PER_RAD  # sensor -> body frame
 
     def clamp_adjust(self, p: Mapping[str, float], temp_c: np.ndarray) -> np.ndarray:
         temp_c = np.asarray(temp_c, dtype=np.float64)
@@ -336,15 +416,11 @@ class ArduPilot(Profile):
             return np.zeros((temp_c.size, 3))
         g = self._g(p)
         tc = np.clip(temp_c, p[self.p_tmin], p[self.p_tmax])
-        return (self._poly(g, tc - self.TREF_C) - self._poly(g, temp_c - self.TREF_C)) * DEG_PER_RAD
+        diff = self._poly(g, tc - self.TREF_C) - self._poly(g, temp_c - self.TREF_C)
+        return diff @ self._r(p).T * DEG_PER_RAD
 
     def problem(self, p: Mapping[str, float]) -> str | None:
-        if p.get("AHRS_ORIENTATION", 0.0) != 0.0:
-            return (
-                "AHRS_ORIENTATION is not 0: ArduPilot applies INS_TCAL in the sensor frame and RAW_IMU is in "
-                "the body frame; gyrocal does not rotate coefficients yet"
-            )
-        return None
+        return self.rotation_problem(p)
 
 
 PROFILES: dict[str, type[Profile]] = {"px4": Px4, "ardupilot": ArduPilot}

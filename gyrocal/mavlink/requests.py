@@ -129,12 +129,14 @@ class UnitRequests:
         self._adj = None
         if res.ok and self.profile is not None:
             u = self.state.unit(self.serial)
+            rotation = self.profile.rotation_of(res.params)  # the frame the set was written in
             u.update(
                 version=write.version,
                 coeffs=[list(r) for r in write.coeffs_dps],
                 terms_id=write.terms_id,
-                durable={k: res.params[k] for k in self.profile.durable if k in res.params},
+                durable={**{k: res.params[k] for k in self.profile.durable if k in res.params}, **rotation},
                 target={**res.target, self.profile.enable.name: 1.0},
+                rotation=rotation,
             )
             self.state.save()
             rep = self._reported(self._params)
@@ -197,6 +199,11 @@ class UnitRequests:
         why = self.profile.problem(self._params)
         if why:
             self._set_fault(why)
+            self._config_fault = why
+        elif self.fault is not None and self.fault == getattr(self, "_config_fault", None):
+            # the configuration was fixed (a supported board rotation, a gyro calibration): serve again
+            log.info("mavlink link: %s no longer applies", self.fault)
+            self.fault = self._config_fault = None
         if self._report_wanted:
             self._report_wanted = False
             out.append(self._reported(self._params))

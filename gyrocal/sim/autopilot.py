@@ -20,6 +20,13 @@ The output subtracts what the autopilot's own parameters say, as the real code d
 - ArduPilot: RAW_IMU [mrad/s, int16, truncated toward zero as C does] = raw - (P(T-35) - P(Tcal-35))
   (only while INS_TCAL1_ENABLE = 1, read live) - INS_GYROFFS; at each boot a gyro calibration sets
   INS_GYROFFS to the mean raw rate and INS_GYR1_CALTEMP to the temperature then (INS_GYR_CAL = 1).
+
+Frames: the raw offset, the compensation and the boot gyro calibration live in the SENSOR (board)
+frame, and the output is rotated into the BODY frame by the board rotation parameter (PX4
+SENS_BOARD_ROT, ArduPilot AHRS_ORIENTATION; ``rotation=``) as both autopilots do after subtracting
+their offsets (PX4 ``Gyroscope::Correct``, ArduPilot ``_rotate_and_correct_gyro``). The rotation is
+gyrocal/sim/board_rotation.py, a transcription of ArduPilot's ``Vector3::rotate``, independent of the
+link's gyrocal/mavlink/rotation.py. The accelerometer reads a level vehicle at rest (body frame).
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import numpy as np
 
 from gyrocal.mavlink import pymav
 from gyrocal.mavlink.profiles import INT8, INT32, REAL32, ArduPilot, Px4, decode_param, encode_param, f32
+from gyrocal.sim import board_rotation
 from gyrocal.sim.truth import Thermal, TruthModel
 
 G0 = 9.80665
@@ -94,6 +102,7 @@ class VirtualAutopilot:
         faults: AutopilotFaults | None = None,
         sysid: int = 1,
         noise_dps: float = 0.05,
+        rotation: int = 0,
         ambients_c: tuple[float, ...] = (),
     ) -> None:
         if kind not in ("px4", "ardupilot"):
@@ -113,6 +122,8 @@ class VirtualAutopilot:
         self.mav = pymav.codec(sysid, 1)
         self.d = pymav.dialect()
         self.params, self.ptypes = self._defaults()
+        board_rotation.rotate(rotation, np.zeros(3))  # refuse a rotation it does not model, up front
+        self.params[self.rotation_param] = float(rotation)
         self.order = list(self.params)
         self.boot = BootState(0)
         self.boot_count = 0
@@ -124,6 +135,14 @@ class VirtualAutopilot:
         self._rng = np.random.default_rng([seed, 0xA7])
 
     # -- parameters ---------------------------------------------------------------------------
+    @property
+    def rotation_param(self) -> str:
+        return "SENS_BOARD_ROT" if self.kind == "px4" else "AHRS_ORIENTATION"
+
+    def to_body(self, v_sensor: np.ndarray) -> np.ndarray:
+        """Sensor (board) frame -> body frame with the board rotation the autopilot holds now."""
+        return board_rotation.rotate(int(self.params[self.rotation_param]), v_sensor)
+
     def _defaults(self) -> tuple[dict[str, float], dict[str, int]]:
         p = self.profile
         vals: dict[str, float] = {}
@@ -179,7 +198,8 @@ class VirtualAutopilot:
             self.params["INS_GYR1_CALTEMP"] = f32(temp0)
 
     def raw_offset_dps(self, temp_c: np.ndarray) -> np.ndarray:
-        """The true gyro offset of this boot at temp_c, (N, 3) [deg/s]: switch-on bias + Q(T), no noise."""
+        """The true gyro offset of this boot at temp_c, (N, 3) [deg/s], in the SENSOR frame: switch-on
+        bias + Q(T), no noise."""
         from gyrocal.mavlink.poly import evaluate
 
         return evaluate(self.q_true, temp_c) + self.boot.bias_dps
@@ -204,7 +224,7 @@ class VirtualAutopilot:
             b.t_pub_c = temp
 
     def compensation_dps(self, temp_c: float) -> np.ndarray:
-        """What the autopilot subtracts now at temp_c [deg/s] (for truth: the benchmark's 'after')."""
+        """What the autopilot subtracts now at temp_c [deg/s], in the SENSOR frame."""
         p = self.params
         if self.kind == "px4":
             return (self.boot.thermal_pub_rad + np.array([p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"])) / RAD
@@ -218,8 +238,9 @@ class VirtualAutopilot:
         return (corr + np.array([p[f"INS_GYROFFS_{a}"] for a in "XYZ"])) / RAD
 
     def offset_error_dps(self, temp_c: float) -> np.ndarray:
-        """True offset left in the output at temp_c [deg/s]: raw offset minus what is subtracted."""
-        return self.raw_offset_dps(np.array([temp_c]))[0] - self.compensation_dps(temp_c)
+        """True offset left in the output at temp_c [deg/s], BODY frame: raw offset minus what is
+        subtracted, rotated as the output is."""
+        return self.to_body(self.raw_offset_dps(np.array([temp_c]))[0] - self.compensation_dps(temp_c))
 
     def render(self, t_s: float) -> list[Any]:
         """All messages due up to unit time t_s [s since boot], in time order."""
@@ -249,7 +270,7 @@ class VirtualAutopilot:
     def _imu_message(self, mid: int, ts: float, temp: float) -> Any:
         d = self.d
         gyro_dps = self.raw_offset_dps(np.array([temp]))[0] + self._rng.normal(0.0, self.noise_dps, 3)
-        gyro_dps = gyro_dps - self.compensation_dps(temp)
+        gyro_dps = self.to_body(gyro_dps - self.compensation_dps(temp))  # sensor -> body, after the offsets
         acc = np.array([0.0, 0.0, -G0]) + self._rng.normal(0.0, 0.02, 3)  # level, at rest, FRD
         usec = int(round(ts * 1e6))
         if mid == 105 and self.kind == "px4":

@@ -210,6 +210,14 @@ def configure(p: argparse.ArgumentParser) -> None:
         "(default 20); each warm-up rises 30 degC from it",
     )
     g.add_argument(
+        "--rotation",
+        type=int,
+        default=None,
+        metavar="N",
+        help="board rotation (PX4 SENS_BOARD_ROT / ArduPilot AHRS_ORIENTATION enum, 0..37, 39, 40): "
+        "offsets apply in the sensor frame, the output is rotated to body (default: 0, or the --flash value)",
+    )
+    g.add_argument(
         "--drop-param-values",
         type=int,
         default=0,
@@ -251,6 +259,12 @@ def main(args: argparse.Namespace) -> int:
             ap.load_flash(json.loads(Path(args.flash).read_text(encoding="utf-8")))
         except (OSError, ValueError) as err:
             raise ConfigError(f"--flash {args.flash}: unreadable ({err}); delete the file") from err
+    if args.rotation is not None:
+        from gyrocal.sim.board_rotation import SUPPORTED
+
+        if args.rotation not in SUPPORTED:
+            raise ConfigError(f"--rotation {args.rotation}: the virtual autopilot models {SUPPORTED}")
+        ap.params[ap.rotation_param] = float(args.rotation)
     if args.mavlink_udp:
         host, _, port = args.mavlink_udp.rpartition(":")
         if not port.isdigit():

@@ -11,6 +11,12 @@ continuously (gyrocal.mavlink.profiles: ``applied`` + ``clamp_adjust``, clamped 
 1 degC staircase adds at most slope x 1 degC on top (``px4_staircase_dph``). For a PX4 whose
 TC_G_ENABLE was 0 at boot the set applies after the next reboot, under a new switch-on bias that adds
 a constant; ``shape_after_dph`` (the error minus its mean over the range) is the part a reboot keeps.
+
+Frames: the error is worked out in the autopilot's SENSOR frame (its raw offset and its subtraction,
+with the profile's formulas at board rotation 0, i.e. unrotated) and rotated into the BODY frame by
+the virtual autopilot's own rotation (gyrocal/sim/board_rotation.py), not by the link's
+gyrocal/mavlink/rotation.py: a wrong transform in the link shows here as a wrong calibration. The
+figures are per body axis, the axes the IMU messages and the daemon use.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import numpy as np
 
 from gyrocal.mavlink.poly import evaluate
 from gyrocal.mavlink.profiles import PROFILES
+from gyrocal.sim import board_rotation
 from gyrocal.sim.autopilot import VirtualAutopilot
 
 DPH = 3600.0
@@ -41,10 +48,14 @@ def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: n
         ap.power_on()
     before_params = dict(ap.params)
     prof = PROFILES[kind](0)
-    raw = ap.raw_offset_dps(temps)
+    raw = ap.raw_offset_dps(temps)  # sensor frame
+    rot = int(final_params.get(ap.rotation_param, 0.0))
+    unrotated = {n: 0.0 for n in prof.rotation_names(final_params)}
 
     def error(p: dict[str, float]) -> np.ndarray:
-        return raw - (evaluate(prof.applied(p), temps) + prof.clamp_adjust(p, temps))
+        p = {**p, **unrotated}  # the profile's subtraction in the sensor frame
+        err_sensor = raw - (evaluate(prof.applied(p), temps) + prof.clamp_adjust(p, temps))
+        return board_rotation.rotate(rot, err_sensor)  # the virtual autopilot's own rotation to body
 
     after_params = {**before_params, **{k: float(v) for k, v in final_params.items() if k in before_params}}
     if kind == "ardupilot":  # the learning boot's own gyro calibration, not the one saved at the last boot
@@ -62,7 +73,8 @@ def offset_errors(kind: str, seed: int, final_params: dict[str, float], temps: n
     out["improvement_x"] = (
         (np.max(np.abs(b), axis=0) / np.maximum(np.max(np.abs(a), axis=0), 1e-9)).round(1).tolist()
     )
+    out["board_rotation"] = rot
     if kind == "px4":
-        slope = np.abs(np.gradient(raw, temps, axis=0)).max(axis=0)
+        slope = np.abs(np.gradient(board_rotation.rotate(rot, raw), temps, axis=0)).max(axis=0)
         out["px4_staircase_dph"] = (slope * 1.0 * DPH).round(1).tolist()
     return out
