@@ -357,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"| oracle>=0.9: {h['named']}/{h['n']}")
         a, h = s["overall"]["all"], s["overall"]["showable"]
         print(f"overall named {a['named']}/{a['n']}, wrong {a['wrong']}, spill {a['spill']}, extra_walk "
-              f"{a['extra_walk']} (instead of the effect {a['walk_instead']}); where oracle >= {ORACLE_HIGH}: "
+              f"{a['extra_walk']} (instead {a['walk_instead']}); where oracle >= {ORACLE_HIGH}: "
               f"named {h['named']}/{h['n']}, "
               f"wrong {h['wrong']}")
         print("real nulls:", json.dumps(s["real_nulls"]))
