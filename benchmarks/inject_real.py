@@ -40,9 +40,11 @@ Oracle power: for each injected signal s (on the used samples), the noncentralit
 lambda = s' V^-1 s - s' V^-1 X (X' V^-1 X)^-1 X' V^-1 s of a likelihood-ratio test that knows the
 effect's shape, under the cleaned log's fitted error model V (the test's own, ``AxisLR.model``), X
 the baseline (session offsets + nine gravity terms); its power at the analysis' threshold (p <
-0.01/18, times the warm-up grid's 8 or the frequency search's look-elsewhere factor). It is the most
-ANY test could name on that log; the analysis' searched test has less. ``outside_baseline`` is the
-share of s's energy the baseline cannot absorb (least squares).
+0.01/18, times the warm-up grid's 8 or the frequency search's look-elsewhere factor; the shipped
+test pays 9 for the warm-up since its tau is chosen per axis, so the oracle is a touch generous).
+It is the most ANY test could name on that log; the analysis' searched test has less. For a random
+walk it is generous by far: it knows the path, where the walk test has to find a wander.
+``outside_baseline`` is the share of s's energy the baseline cannot absorb (least squares).
 
 Rows are written to ``--jsonl`` as they come (one per clean log, one per injection), so a long run
 can be split by ``--logs`` over processes and summarised together.
