@@ -38,3 +38,22 @@ def test_two_warmups_of_different_tau_are_each_tested_at_their_own_tau() -> None
                  {c.cause: search_factor(prob, c.cause) for c in regs})
     assert old.test([], "warmup")[1] > ALPHA  # what the pooled tau gave (p = 0.25)
     assert np.isfinite(lrs[2].test([], "warmup")[0])
+
+
+def test_injection_scoring_counts_only_new_causes_as_wrong() -> None:
+    """benchmarks/inject_real.py: what the cleaned log names itself is never wrong; a new regression
+    cause is; the injected cause on another axis is a spill."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from inject_real import score
+
+    own = {"x": ["periodic"], "y": [], "z": ["random_walk"]}
+    found = {"x": ["periodic"], "y": ["warmup"], "z": ["random_walk"]}
+    assert score(found, own, "warmup", "y", True) == {"named": True, "wrong": [], "spill": [],
+                                                      "extra_walk": False}
+    found = {"x": ["periodic", "temperature"], "y": ["random_walk"], "z": ["warmup", "random_walk"]}
+    r = score(found, own, "warmup", "y", True)
+    assert r == {"named": False, "wrong": ["temperature"], "spill": ["z"], "extra_walk": True}
+    assert not score({"x": [], "y": ["periodic"], "z": []}, own, "periodic", "y", False)["named"]
