@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/bench_analyze.py --long [--hours 3]      # linear cost: time + peak memory
     .venv/bin/python benchmarks/bench_analyze.py --backgrounds --seeds N  # coloured/flicker/quantised nulls
     .venv/bin/python benchmarks/bench_analyze.py --map --seeds N --plot map.png  # detection vs size
+    .venv/bin/python benchmarks/bench_analyze.py --map --real --json m.json --plot m.png  # on real logs
 
 ``--long``: one 3-hour, 100 Hz still-and-tumble log (3 sessions of 1 h, 1.08 M samples, hidden
 warm-up), analysed end to end through ``gyrocal analyze``; wall time and the process' peak resident
@@ -56,9 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--map", action="store_true", help="detection rate against effect size")
     ap.add_argument("--sizes", default="0.05,0.1,0.2,0.5,1.0", help="--map sizes [sigma]")
     ap.add_argument("--plot", help="--map: write the plot here (PNG)")
+    ap.add_argument("--real", action="store_true",
+                    help="--map: inject into every shipped real log (benchmarks/inject_real.py --map)")
     args = ap.parse_args(argv)
     if args.hard:
         return _hard(args.json)
+    if args.map and args.real:
+        return _map_real(args.json, args.plot)
     if args.map:
         return _map([float(x) for x in args.sizes.split(",")], args.seeds, args.json, args.plot)
     if args.long:
@@ -169,6 +174,19 @@ def _map(sizes: list[float], seeds: int, out: str | None, plot: str | None) -> i
         fg.tight_layout()
         fg.savefig(plot, dpi=110)
     return 0
+
+
+def _map_real(out: str | None, plot: str | None) -> int:
+    """The detection map on real data: ``inject_real.py --map`` (every shipped log, cleaned of its
+    own named effects; 3 axes / seeds per cause and size), then its summary, table and plot."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import inject_real
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = str(Path(tmp) / "map.jsonl")
+        inject_real.main(["--map", "--jsonl", rows])
+        extra = (["--json", out] if out else []) + (["--plot", plot] if plot else [])
+        return inject_real.main(["--map", "--summary", rows, *extra])
 
 
 def _hard(out: str | None) -> int:

@@ -47,6 +47,7 @@ class AxisLR:
     cols: dict[str, np.ndarray]  # cause -> design columns (M, p)
     look_elsewhere: dict[str, float]
     models: dict[tuple[str, ...], NoiseModel] = field(default_factory=dict)  # ('point', ...) too
+    warmup_tau_s: float | None = None  # this axis' warm-up tau when not the pooled one [s]
     tests: dict[tuple[tuple[str, ...], str], tuple[float, float]] = field(default_factory=dict)
 
     def design(self, causes: list[str] | tuple[str, ...]) -> np.ndarray:
@@ -168,10 +169,44 @@ def search_factor(prob: Problem, cause: str) -> float:
 
 
 def build_axis_lr(prob: Problem, cands: list[Candidate], axis: int) -> AxisLR:
-    """The test of one axis over the regression candidates (the walk is a state, not a column)."""
+    """The test of one axis over the regression candidates (the walk is a state, not a column).
+
+    The warm-up's column is this axis' own (``axis_warmup``): the candidate's time constant is
+    chosen by least squares pooled over the axes, which a wandering neighbour axis pulls away from
+    the true one.
+    """
     regs = [c for c in cands if c.cause != "random_walk" and c.full.shape[1]]
-    return AxisLR(prob, axis, {c.cause: c.full for c in regs},
-                  {c.cause: search_factor(prob, c.cause) for c in regs})
+    lr = AxisLR(prob, axis, {c.cause: c.full for c in regs},
+                {c.cause: search_factor(prob, c.cause) for c in regs})
+    if "warmup" in lr.cols:
+        lr.cols["warmup"], lr.warmup_tau_s = axis_warmup(lr, lr.cols["warmup"])
+        lr.look_elsewhere["warmup"] = float(len(WARMUP_TAUS_S) + 1)
+    return lr
+
+
+def axis_warmup(lr: AxisLR, pooled: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """The warm-up column exp(-t_on / tau) (M, 1) of one axis and its tau [s] (None = the pooled one).
+
+    tau is the grid point (``WARMUP_TAUS_S``, cut at half the longest session, as the candidate's
+    grid) or the candidate's pooled tau with the largest likelihood ratio D on this axis, under the
+    axis' baseline error model. The test pays for that choice: its look-elsewhere factor is the
+    grid's size + 1 (a Bonferroni bound over the choices; the taus are correlated, so it is
+    conservative). Why (issue 12, injections into every shipped log): on tomisuarez tinit a 60 s
+    warm-up injected on z at 0.25 sigma (oracle power 1.0) was missed: the pooled least-squares tau
+    was 169 s, pulled by the slow wander of the other axes, and D at that tau was 6.1.
+    """
+    prob = lr.prob
+    t_on = prob.cols["t_on"]
+    t_max = float(np.max(t_on))
+    taus = [t for t in WARMUP_TAUS_S if t <= t_max / 2] or [WARMUP_TAUS_S[0]]
+    x = np.column_stack([pooled, *[np.exp(-t_on / t) for t in taus]])
+    gls = StateSpaceGLS(lr.model, prob.cols["t"], prob.usable.session)
+    nb = prob.base.shape[1]
+    g = gls.gram(np.column_stack([prob.base, x, lr.prob.y[:, lr.axis]]))
+    q0 = _q(g, np.arange(nb), prob.n)
+    d = [q0 - _q(g, np.r_[np.arange(nb), nb + j], prob.n) for j in range(x.shape[1])]
+    j = int(np.argmax(d))
+    return x[:, j : j + 1], (None if j == 0 else float(taus[j - 1]))
 
 
 def heldout_walk(prob: Problem, model: NoiseModel, axis: int, chosen: list[Candidate]) -> np.ndarray:
