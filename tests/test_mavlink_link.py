@@ -229,3 +229,27 @@ def test_each_boot_of_a_run_starts_at_its_own_ambient() -> None:
         caltemps.append(ap.params["INS_GYR1_CALTEMP"])
     assert temps == [20.0, 30.0, 30.0] and caltemps == pytest.approx([20.0, 30.0, 30.0])
     assert ap.temp_c(1e4) == pytest.approx(60.0)  # each rises 30 degC
+
+
+def test_a_reboot_within_a_second_of_the_stream_is_still_a_new_boot() -> None:
+    """The boot detector after a heartbeat silence of G s: the same boot's clock has run on by G, a new
+    boot's starts again. A reboot soon after the stream began (last stamp 0.3 s) was taken for a glitch
+    when the new stamps were compared with the last one alone (a fresh-clone CI run, issue 10)."""
+    from gyrocal.mavlink.imu import BootDetector
+
+    b = BootDetector(silence_s=3.0)
+    b.on_heartbeat(0.0)
+    assert not b.on_time(0.3)
+    assert not b.on_heartbeat(4.1)  # 4.1 s of silence: suspicion
+    assert b.on_time(0.05)  # the clock restarted: a new boot
+    g = BootDetector(silence_s=3.0)  # a cable glitch: the autopilot ran on through the silence
+    g.on_heartbeat(0.0)
+    assert not g.on_time(0.3)
+    assert not g.on_heartbeat(4.1)
+    assert not g.on_time(4.35) and not g.on_time(4.36)
+    n = BootDetector(silence_s=3.0)  # no stamp before the silence: the suspicion stands, then counts
+    n.on_heartbeat(0.0)
+    assert not n.on_heartbeat(4.1)
+    assert not n.on_time(0.05)
+    assert not n.on_heartbeat(5.1) and not n.on_heartbeat(6.1)
+    assert n.on_heartbeat(7.2)
