@@ -369,8 +369,12 @@ def test_a_rotation_gyrocal_cannot_map_is_one_clear_fault_until_fixed(tmp_path: 
         assert [m for m in ctl if isinstance(m, CoeffNak)][0].reason == int(NakReason.UNKNOWN_TERMS)
         peer.params["AHRS_ORIENTATION"] = (8, INT8)  # a ground station fixes it; it applies at the reboot
         peer.rotation = 8
-        # a real reboot: seconds of silence, streams forgotten. An instant one that keeps streaming is
-        # seen only from the time stamps going back, and a fresh-clone CI run once saw none in time
+        # a real reboot comes after the stream has run a while, with seconds of silence and the streams
+        # forgotten. The link tells a reboot from a host stall by the boot clock going back, so a
+        # reboot within the stream's first half second cannot be told (fresh-clone CI runs rebooted
+        # the peer at a link time stamp of 0.0014 s, and the fault stayed)
+        assert wait_for(lambda: peer.stream_hz > 0, 10)
+        time.sleep(2.0)
         peer.reboot_silence_s = 4.0
         peer.reboot.set()
         assert wait_for(lambda: any(isinstance(m, Hello) for m in ctl), 15), link.fault

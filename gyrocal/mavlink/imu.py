@@ -110,12 +110,8 @@ class BootDetector:
     """A new boot: the boot-relative time goes back, or the heartbeat returns after ``silence_s``.
 
     A returning heartbeat alone may be a cable glitch, so it only raises a suspicion that the next
-    time stamp settles. An autopilot that kept running through a silence of G seconds has a boot time
-    at least G (less ``back_margin_s``) past its last time stamp before it: a time stamp short of that
-    is a new boot, one past it the same boot. With no time stamp before the silence there is nothing
-    to compare, and with none for ``silence_s`` after it, the suspicion stands and counts as a boot.
-    (Comparing with the last time stamp alone missed a reboot that came within a second of the
-    stream's start: its new clock was not behind the old one's few hundred milliseconds.)
+    time stamp settles (back in time: new boot; forward: the same boot). With no time stamp for
+    ``silence_s`` after it, the suspicion stands and counts as a boot.
     """
 
     def __init__(self, silence_s: float = 3.0, back_margin_s: float = 0.5) -> None:
@@ -123,24 +119,23 @@ class BootDetector:
         self.last_t: float | None = None
         self.last_hb: float | None = None
         self._suspect_since: float | None = None
-        self._due_t: float | None = None  # the boot time the same boot must have reached [s]
 
     def on_heartbeat(self, now: float) -> bool:
-        gap = now - self.last_hb if self.last_hb is not None else 0.0
+        gap = self.last_hb is not None and now - self.last_hb > self.silence_s
         self.last_hb = now
-        if gap > self.silence_s:
+        if gap:
             self._suspect_since = now
-            self._due_t = None if self.last_t is None else self.last_t + gap - self.back_margin_s
         if self._suspect_since is not None and now - self._suspect_since > self.silence_s:
-            self._suspect_since = self._due_t = None
+            self._suspect_since = None
             self.last_t = None
             return True
         return False
 
     def on_time(self, t_s: float) -> bool:
         back = self.last_t is not None and t_s < self.last_t - self.back_margin_s
-        if self._suspect_since is not None and self._due_t is not None:
-            back = back or t_s < self._due_t  # the clock did not run through the silence: restarted
-            self._suspect_since = self._due_t = None  # settled, either way
-        self.last_t = t_s
+        if self._suspect_since is not None and self.last_t is not None and not back:
+            self._suspect_since = None  # the same boot: time went on
+        self.last_t = t_s if not back else t_s
+        if back:
+            self._suspect_since = None
         return back
