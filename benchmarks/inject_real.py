@@ -68,6 +68,7 @@ from gyrocal.analysis.lrtest import AxisLR
 from gyrocal.logformat import LogData
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_logs import cleaned_columns  # noqa: E402 (the one way to remove a log's own effects)
 from real_logs import logs as real_logs  # noqa: E402 (the one list of shipped logs)
 
 REGRESSION = ("temperature", "temperature_rate", "warmup", "periodic", "scale_factor")
@@ -209,12 +210,7 @@ def run_log(name: str, load: Callable[[], LogData], sizes: list[float], variants
     an = analyze(log)
     res = an.result
     sigma = float(np.mean(list(res["noise_dps"].values())))
-    cols = {k: np.array(v, float) for k, v in log.columns.items()}
-    idx = an.prob.usable.index
-    for cause, c in an.contributions.items():
-        if cause in REGRESSION:
-            for k, a in enumerate("xyz"):
-                cols[f"w{a}"][idx] -= c[:, k]
+    cols = cleaned_columns(log, an)
     sel = select(cols)
     own = select_full(cols, log) if full else sel.axes
     own_by_cause: dict[str, list[str]] = {}

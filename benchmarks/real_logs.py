@@ -61,6 +61,19 @@ def _px4() -> LogData:
     return read_ulog(str(data_dir("px4_ulog") / "sample_log_small.ulg"), ReadOptions())
 
 
+def cleaned_columns(log: LogData, an) -> dict:  # noqa: ANN001 (an: engine.Analysis)
+    """The log's columns as float arrays, with the contributions of the regression causes ``analyze``
+    named subtracted from the gyro [deg/s] on the samples it used: the log with its own effects
+    removed, for the real-null count here and for the injections (inject_real.py)."""
+    cols = {k: np.array(v, float) for k, v in log.columns.items()}
+    idx = an.prob.usable.index
+    for cause, c in an.contributions.items():
+        if cause in REGRESSION:
+            for k, a in enumerate("xyz"):
+                cols[f"w{a}"][idx] -= c[:, k]
+    return cols
+
+
 def halves(log: LogData, cols: dict) -> list[LogData]:
     """The log's rows split at the middle of its time span: two independent halves."""
     t = np.asarray(cols["t"], float)
@@ -217,12 +230,7 @@ def main() -> None:
                                                          "fidelity_worst_place", "own_session_models",
                                                          "seconds")}), flush=True)
             continue
-        cols = {k: np.array(v, float) for k, v in log.columns.items()}
-        idx = an.prob.usable.index
-        for cause, c in an.contributions.items():
-            if cause in REGRESSION:
-                for k, a in enumerate("xyz"):
-                    cols[f"w{a}"][idx] -= c[:, k]
+        cols = cleaned_columns(log, an)
         r2 = analyze(LogData(cols, log.metadata, log.extra_columns, log.source)).result
         row["after_removal"] = [f["cause"] for f in r2["findings"]]
         first = {f["cause"] for f in r["findings"]}
