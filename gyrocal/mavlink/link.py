@@ -108,6 +108,7 @@ class MavlinkLink(UnitRequests, Link):
         self._conn: Any = None
         self._requests: collections.deque[Any] = collections.deque()
         self.fault: str | None = None
+        self._config_fault: str | None = None  # a fault of the unit's parameters, cleared when fixed
         self._mav_stats = {"frames": 0, "bytes": 0, "bad_frames": 0}
         self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
         self._reset_boot()

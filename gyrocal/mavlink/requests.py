@@ -200,7 +200,7 @@ class UnitRequests:
         if why:
             self._set_fault(why)
             self._config_fault = why
-        elif self.fault is not None and self.fault == getattr(self, "_config_fault", None):
+        elif self.fault is not None and self.fault == self._config_fault:
             # the configuration was fixed (a supported board rotation, a gyro calibration): serve again
             log.info("mavlink link: %s no longer applies", self.fault)
             self.fault = self._config_fault = None
