@@ -128,6 +128,7 @@ class Engine(CommandsMixin):
         self._seq_session_at: float | None = None  # when a session was started by the seq alone
         self._link_state = "not opened"
         self._pending: list[tuple[Any, ...]] = []  # inbox items not handled yet, in arrival order
+        self._signalled: deque[str] = deque()  # what the signal handlers asked for; see install_signals
         self._last_status_line = ""
         self._last_logged_kind = ""
         self._hello_asks = 0  # HELLO_REQUESTs sent since the last HELLO
@@ -194,10 +195,28 @@ class Engine(CommandsMixin):
         self._stop.set()
 
     def install_signals(self) -> None:
-        signal.signal(signal.SIGTERM, lambda *_: self.stop())
-        signal.signal(signal.SIGINT, lambda *_: self.stop())
-        signal.signal(signal.SIGHUP, lambda *_: self.inbox.put(("reload",)))
-        signal.signal(signal.SIGUSR1, lambda *_: self.inbox.put(("cmd", {"cmd": "recalibrate"}, None)))
+        """SIGTERM/SIGINT stop, SIGHUP reloads the config, SIGUSR1 recalibrates.
+
+        A Python signal handler runs on the main thread between two bytecodes, which can be inside
+        ``inbox.get_nowait()`` with the queue's lock held. A handler that put into the inbox then
+        waited for that lock forever: the loop, the watchdog pings and the reload all stopped (a
+        SIGHUP that hung the daemon, once in about 20 CI runs). The handlers now only append to a
+        deque, which takes no lock, and the loop turns that into work (``_take_signals``).
+        """
+        for signum, what in ((signal.SIGTERM, "stop"), (signal.SIGINT, "stop"),
+                             (signal.SIGHUP, "reload"), (signal.SIGUSR1, "recalibrate")):
+            signal.signal(signum, lambda *_, what=what: self._signalled.append(what))
+
+    def _take_signals(self) -> None:
+        """Turn what the signal handlers asked for into loop work, in the order it was asked."""
+        while self._signalled:
+            what = self._signalled.popleft()
+            if what == "stop":
+                self.stop()
+            elif what == "reload":
+                self._pending.append(("reload",))
+            else:
+                self._pending.append(("cmd", {"cmd": "recalibrate"}, None))
 
     # -- callbacks from other threads ---------------------------------------------------------
     def _on_control(self, msg: Any) -> None:
@@ -222,7 +241,10 @@ class Engine(CommandsMixin):
         interval = self.notifier.watchdog_interval_s() if self.cfg.watchdog else None
         next_ping = 0.0
         deadline = None if timeout_s is None else self.clock() + timeout_s
-        while not self._stop.is_set():
+        while True:
+            self._take_signals()
+            if self._stop.is_set():
+                break
             now = self.clock()
             n = 0
             for _ in range(8):  # samples and messages in stream order, a bounded amount per round
@@ -242,8 +264,8 @@ class Engine(CommandsMixin):
             if deadline is not None and now > deadline:
                 break
             if n < 64 and self.idle_sleep_s > 0:
-                # a plain sleep, not a blocking inbox.get: the signal handlers put into the inbox from
-                # this thread, and must never find its lock held by the code they interrupted
+                # a plain sleep, not a blocking inbox.get, so that a signal's work waits at most
+                # one idle sleep (the handlers never touch the inbox; see install_signals)
                 time.sleep(self.idle_sleep_s)
 
     def _contain(self, where: str, fn: Any, *args: Any) -> Any:
