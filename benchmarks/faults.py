@@ -467,6 +467,28 @@ def sc_replug(rig: Rig) -> Result:
     return _finish(rig, res)
 
 
+def sc_reload_storm(rig: Rig) -> Result:
+    res = Result("reload_storm", rig.link,
+                 "300 x systemctl reload (SIGHUP) 5 ms apart while the daemon learns, then a push")
+    if not rig.start_healthy():
+        return _finish(rig, res)
+    t0 = time.monotonic()
+    for _ in range(300):
+        if rig.daemon_up():
+            rig.daemon.send_signal(signal.SIGHUP)  # type: ignore[union-attr]
+        time.sleep(0.005)
+    ok = rig.wait(rig.healthy, 20)
+    res.recover_s = round(time.monotonic() - t0 - 1.5, 2) if ok else None  # from the last signal
+    acked = rig.wait(rig.acked, PUSH_S)
+    text = (rig.tmp / "daemon.log").read_text(errors="replace")
+    reloads = text.count("SIGHUP: configuration reloaded")
+    st = rig.status()
+    res.lost = (f"{reloads} reload(s) done for 300 signals (the OS merges pending ones); "
+                f"sessions {st.get('sessions')}")
+    res.ok = bool(ok) and bool(acked) and reloads >= 1 and st.get("sessions") == 1
+    return _finish(rig, res)
+
+
 def sc_power_cycles(rig: Rig) -> Result:
     res = Result("power_cycles", rig.link, "3 power cycles (SIGUSR1), 3 s apart")
     if not rig.start_healthy():
@@ -546,6 +568,7 @@ SCENARIOS: dict[str, tuple[Callable[[Rig], Result], tuple[str, ...], bool]] = {
     "seq_outliers": (sc_seq_outliers, ("pty",), False),
     "unit_silent": (sc_silence, ("pty", "can"), True),
     "pty_replug": (sc_replug, ("pty",), True),
+    "reload_storm": (sc_reload_storm, ("pty",), False),
     "power_cycles": (sc_power_cycles, ("pty", "can"), True),
     "no_coeff_read": (sc_no_coeff_read, ("pty",), True),
     "flapping_cable": (sc_flapping_cable, ("pty",), True),
