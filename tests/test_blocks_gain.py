@@ -46,6 +46,29 @@ def test_the_block_noise_is_the_variance_of_the_mean() -> None:
     np.testing.assert_allclose(win.noise_var(), 0.05**2 / 50, rtol=0.1)
 
 
+def test_a_drift_inside_the_block_is_not_taken_for_noise() -> None:
+    """A block whose rate ramps (a warming unit) keeps the noise of its samples, not the ramp's."""
+    rng = np.random.default_rng(4)
+    acc = BlockAccumulator(200, 1, 1)
+    win = BlockWindow(100)
+    for _ in range(50):
+        ramp = np.linspace(0.0, 0.02, 200)[:, None] * np.ones(3)  # 0.02 deg/s within the block
+        raw = ramp + rng.normal(0.0, 0.001, (200, 3))
+        for part in np.array_split(np.arange(200), 7):  # fed in uneven chunks, as the link delivers
+            done, _ = acc.feed(raw[part], raw[part], np.ones((part.size, 1)), np.ones(part.size, dtype=bool))
+            win.add(done)
+    np.testing.assert_allclose(win.noise_var(), 0.001**2 / 200, rtol=0.1)
+
+
+def test_a_quiet_unit_is_judged_by_the_plain_gate_alone() -> None:
+    """Where the noise is a small part of the residual (a fibre-optic unit), the gate without the
+    noise stays out: the decision is the plain gate's, as before it existed."""
+    rng = np.random.default_rng(5)
+    win, c_true = _window(rng, 10.0, 0.0005, 200)
+    gain = held_out_gain(win, None, 0.85 * c_true)
+    assert gain.noise2 < 0.2 * gain.old2 and not gain.passes(NEED)
+
+
 def test_a_noisy_unit_whose_drift_a_set_removes_passes_where_the_plain_gate_cannot() -> None:
     """An MEMS unit: 0.05 deg/s per sample (25 deg/h per 50-sample block mean), 10 deg/h per term,
     200 held-out blocks; the new set removes 80 % of the drift. Over 40 units the plain gate passes

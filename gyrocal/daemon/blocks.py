@@ -18,8 +18,9 @@ import numpy as np
 @dataclass
 class Block:
     """Means over one still block: raw rate [deg/s] (3,), output rate [deg/s] (3,), terms (P,), and
-    the raw rate's sample variance within the block [(deg/s)^2] (3,): its noise, which the mean keeps
-    as var / n (white noise; more when the noise is coloured)."""
+    the raw rate's noise variance per sample within the block [(deg/s)^2] (3,), from successive
+    differences (half their mean square), so that a drift or a temperature change inside the block
+    is not taken for noise. The mean keeps var / n of it (white noise; more when it is coloured)."""
 
     raw_dps: np.ndarray
     out_dps: np.ndarray
@@ -44,7 +45,9 @@ class BlockAccumulator:
 
     def _reset(self, n_terms: int) -> None:
         self._raw = np.zeros(3)
-        self._raw_sq = np.zeros(3)
+        self._dsq = np.zeros(3)  # sum of squared successive differences of raw [(deg/s)^2]
+        self._nd = 0
+        self._last: np.ndarray | None = None  # the block's newest raw sample [deg/s]
         self._out = np.zeros(3)
         self._phi = np.zeros(n_terms)
         self._n = 0
@@ -78,8 +81,12 @@ class BlockAccumulator:
                 sl = slice(i, j)
                 if not self.current_is_holdout:
                     train[sl] = True
-                self._raw += raw[sl].sum(axis=0)
-                self._raw_sq += np.square(raw[sl]).sum(axis=0)
+                x = raw[sl]
+                self._raw += x.sum(axis=0)
+                d = np.diff(x if self._last is None else np.vstack([self._last, x]), axis=0)
+                self._dsq += np.square(d).sum(axis=0)
+                self._nd += d.shape[0]
+                self._last = x[-1]
                 self._out += out[sl].sum(axis=0)
                 self._phi += phi[sl].sum(axis=0)
                 self._n += j - i
@@ -97,9 +104,8 @@ class BlockAccumulator:
             return
         if not partial or self._n >= self.size // 2:
             n = self._n
-            mean = self._raw / n
-            var = np.maximum(self._raw_sq - n * mean**2, 0.0) / max(n - 1, 1)
-            done.append(Block(mean, self._out / n, self._phi / n, n, self.current_is_holdout, var))
+            var = self._dsq / (2 * self._nd) if self._nd else np.zeros(3)
+            done.append(Block(self._raw / n, self._out / n, self._phi / n, n, self.current_is_holdout, var))
             self.count += 1
         self._reset(self._phi.shape[0])
 
@@ -159,6 +165,11 @@ class BlockWindow:
         return np.sqrt(np.mean(res**2, axis=0))
 
 
+NOISE_SHARE_MIN = 0.2
+"""The systematic gate applies only where the blocks' noise is at least this share of the current
+set's mean squared held-out residual. Below it the plain gate is nearly the systematic one and stays
+in charge alone, as before 2026-11-26: a low-noise unit (a fibre-optic gyro) pushes exactly as it did."""
+
 GAIN_Z = 3.0
 """How many standard errors the held-out gain must clear when the block noise is subtracted (one-sided
 p about 0.001 for independent blocks; held-out blocks of one rest are alike, so it is kept strict)."""
@@ -183,10 +194,11 @@ class HeldOutGain:
     blocks: int
 
     def passes(self, need: float) -> bool:
-        """True when the systematic part's square falls to ``need`` x its old value, significantly."""
+        """True when the systematic part's square falls to ``need`` x its old value, significantly,
+        on blocks where the noise is a sizeable part of the residual (``NOISE_SHARE_MIN``)."""
         sys_old = self.old2 - self.noise2
-        return (self.blocks >= 3 and sys_old > 0 and max(self.new2 - self.noise2, 0.0) <= need * sys_old
-                and self.z >= GAIN_Z)
+        return (self.blocks >= 3 and self.noise2 >= NOISE_SHARE_MIN * self.old2 and sys_old > 0
+                and max(self.new2 - self.noise2, 0.0) <= need * sys_old and self.z >= GAIN_Z)
 
     def systematic_dps(self) -> tuple[float, float]:
         """The held-out RMS without the noise [deg/s], current and new (0 where noise explains all)."""

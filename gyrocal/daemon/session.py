@@ -17,9 +17,10 @@
 - Staged calibration: a warm-started session (a stored set) first pushes a bias-only set, from its
   first still second, validated on the blocks seen; the full set follows once the data supports it.
 - VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
-  ``validation.min_improvement``, or lower its systematic part (the residual without the block
-  means' noise) by that fraction, significantly (blocks.HeldOutGain: on a noisy MEMS unit the noise
-  per block exceeds the drift); otherwise nothing is pushed and the reason is logged.
+  ``validation.min_improvement``, or, where the block means' noise is a sizeable part of that
+  residual, lower its systematic part (the residual without the noise) by that fraction,
+  significantly (blocks.HeldOutGain: on a noisy MEMS unit the noise per block exceeds the drift);
+  otherwise nothing is pushed and the reason is logged.
 - PUSHING: push.py's transaction (write, matching ack, read back, retries).
 - APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows. The
   residual is raw - C_applied @ phi over the monitor blocks, so blocks of samples the unit sent
