@@ -133,7 +133,9 @@ class BlockWindow:
         return np.sqrt(np.mean(out**2, axis=0))
 
     def noise_var(self) -> np.ndarray:
-        """The white-noise variance of a block mean [(deg/s)^2], per axis: mean over blocks of var / n.
+        """The white-noise variance of a block mean [(deg/s)^2], per axis: the median over blocks of
+        var / n (a median, so that a few blocks with a vibration or the edge of a move in them do
+        not raise it).
 
         Part of every held-out RMS whatever set is tested, so it is what a calibration can never
         remove. On an MEMS unit (0.05 deg/s per sample, 0.5 s blocks at 100 Hz) it is 25 deg/h, more
@@ -142,7 +144,7 @@ class BlockWindow:
         """
         if not self.blocks:
             return np.full(3, np.nan)
-        return np.mean([b.raw_var_dps2 / b.n for b in self.blocks], axis=0)
+        return np.median([b.raw_var_dps2 / b.n for b in self.blocks], axis=0)
 
     def sq_residuals(self, coeffs_dps: np.ndarray | None) -> np.ndarray:
         """Per block, the squared residual summed over the axes [(deg/s)^2] (B,): raw minus what
