@@ -17,10 +17,7 @@
 - Staged calibration: a warm-started session (a stored set) first pushes a bias-only set, from its
   first still second, validated on the blocks seen; the full set follows once the data supports it.
 - VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
-  ``validation.min_improvement``, or (the session's first set), where the block means' noise is a
-  sizeable part of that residual, lower its systematic part (the residual without the noise) by that fraction,
-  significantly (blocks.HeldOutGain: on a noisy MEMS unit the noise per block exceeds the drift);
-  otherwise nothing is pushed and the reason is logged.
+  ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged.
 - PUSHING: push.py's transaction (write, matching ack, read back, retries).
 - APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows. The
   residual is raw - C_applied @ phi over the monitor blocks, so blocks of samples the unit sent
@@ -70,7 +67,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.daemon import refine
-from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow, held_out_gain
+from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.capabilities import PROTOCOL, Projection, UnitCapabilities, project
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.poses import PoseLog
@@ -538,19 +535,15 @@ class Session(RecoveryMixin):
         self._projection = proj = project(self.names, self.learner.coefficients, held, poses)
         coeffs = proj.embedded_dps
         blocks = self.holdout if blocks is None else blocks
-        applied = self._applied_coeffs()
-        rms_old = blocks.rms_with(applied) if applied is not None else blocks.rms_out()
+        rms_old = blocks.rms_with(self._applied_coeffs()) if self._applied_coeffs() is not None \
+            else blocks.rms_out()
         rms_new = blocks.rms_with(coeffs)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
-        gain = held_out_gain(blocks, applied, coeffs)  # the same, with the blocks' noise taken out
-        sys_old, sys_new = gain.systematic_dps()
         self.last_validation = {
             "blocks": len(blocks), "stage": stage,
             "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
-            "noise_dps": float(np.sqrt(gain.noise2)), "systematic_current_dps": sys_old,
-            "systematic_new_dps": sys_new, "gain_z": round(gain.z, 2),
         }
         g = self._gate_result
         refining = stage == "full" and g is not None and self._held_info()[0] is not None
@@ -558,12 +551,7 @@ class Session(RecoveryMixin):
         # a refinement is not worse on any axis, and improves by min_improvement on the three axes
         # together or on one, or widens the range: a gain in TMIN..TMAX the held-out residual cannot
         # show (the link reconstructs the unit's output with the held set unclamped)
-        # ... or, for the session's first set, its systematic part (the held-out RMS without the block
-        # means' noise) does, significantly. Not for a refinement: once a good set is held the residual
-        # is mostly noise, and the systematic rule let the warm-up's range refinements of a quiet
-        # fibre unit through that the plain rule refused (a fresh-clone CI run: x cut 9.8x, not 10x)
-        first = self.validated_rms is None and not refining
-        enough = new2 <= need * old2 or (first and gain.passes(need))
+        enough = new2 <= need * old2
         if refining and g is not None:
             one_axis = bool(np.any(rms_new <= (1.0 - self.cfg.validation["min_improvement"]) * rms_old))
             enough = enough or one_axis or g.widened
@@ -577,9 +565,7 @@ class Session(RecoveryMixin):
                    f"{_dph(rms_old)} deg/h on axis {'/'.join(worse_axes)}; not pushing")
         elif not enough:
             why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
-                   f"on the current {np.sqrt(old2):.3g} deg/s (without the blocks' noise of "
-                   f"{np.sqrt(gain.noise2):.3g} deg/s: {sys_new:.3g} vs {sys_old:.3g} deg/s, gain "
-                   f"{gain.z:.1f} standard errors); not pushing")
+                   f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
         else:
             why = ""
         if why:
