@@ -45,6 +45,10 @@ held-out t-test over blocks at ``ALPHA`` alone, when the Allan fit holds slow po
 2026-11-26 s12walk)."""
 WALK_HOLDOUT_P = 0.05
 """The held-out confirmation of a significant walk: one-sided t-test over blocks at this level."""
+WALK_HOLDOUT_MODELS = "walk"
+"""Which slow states the held-out confirmation smooths with: "walk" (the LR's walk at q_hat) or
+"either" (also the Allan fit's flicker bank + walk, the better of the two; not the default: probed
+on tomisuarez static z, see docs/analysis.md)."""
 WALK_TAU_S = 1.0
 """The held-out confirmation averages over at least this time [s]: a walk is slow, and at the short
 tau a periodic finding sets (0.007 s for the 35 Hz line of mikoff imu1) the white noise swamps its
@@ -175,6 +179,12 @@ def _walk_by_lr(prob: Problem, axis: int, lr: AxisLR, chosen: list[Candidate], w
         tau_w = max(tau_s, WALK_TAU_S)
         r_new = heldout_walk(prob, w.model, axis, chosen)
         cmp = compare(prob, r_cur, r_new, tau_w)
+        point = lr.point_model_for(names)
+        if WALK_HOLDOUT_MODELS == "either" and (point.slow or point.walk_q > 0):
+            r_pt = heldout_walk(prob, point, axis, chosen)
+            cmp_pt = compare(prob, r_cur, r_pt, tau_w)
+            if cmp_pt.p_value < cmp.p_value:
+                r_new, cmp = r_pt, cmp_pt
         frac = cmp.reduction / _ms(prob, res.r_base, tau_w)
         of_left = cmp.reduction / _ms(prob, r_cur, tau_w)
         entry.update(explained_fraction=round(float(frac), 4), heldout_p_value=cmp.p_value)
