@@ -179,8 +179,8 @@ def _walk_by_lr(prob: Problem, axis: int, lr: AxisLR, chosen: list[Candidate], w
         tau_w = max(tau_s, WALK_TAU_S)
         r_new = heldout_walk(prob, w.model, axis, chosen)
         cmp = compare(prob, r_cur, r_new, tau_w)
-        point = lr.point_model_for(names)
-        if WALK_HOLDOUT_MODELS == "either" and (point.slow or point.walk_q > 0):
+        point = lr.point_model_for(names) if WALK_HOLDOUT_MODELS == "either" else None
+        if point is not None and (point.slow or point.walk_q > 0):
             r_pt = heldout_walk(prob, point, axis, chosen)
             cmp_pt = compare(prob, r_cur, r_pt, tau_w)
             if cmp_pt.p_value < cmp.p_value:
