@@ -44,6 +44,10 @@ the baseline (session offsets + nine gravity terms); its power at the analysis' 
 test pays 9 for the warm-up since its tau is chosen per axis, so the oracle is a touch generous).
 It is the most ANY test could name on that log; the analysis' searched test has less. For a random
 walk it is generous by far: it knows the path, where the walk test has to find a wander.
+The variance-component oracle (``vc_oracle_power``, walk injections only): the power of the walk's
+own test (``lrtest.walk_lr``) at the true intensity, under the cleaned log's own null model,
+from simulated draws (``vc_oracle``). It knows the intensity but not the path, so it is the fair
+yardstick for a walk; the summary gives both.
 ``outside_baseline`` is the share of s's energy the baseline cannot absorb (least squares).
 
 Rows are written to ``--jsonl`` as they come (one per clean log, one per injection), so a long run
@@ -188,6 +192,41 @@ def oracle(sel: Selection, axis: str, sig_full: np.ndarray, cause: str) -> dict:
             "oracle_power": round(float(stats.ncx2.sf(crit, dof, max(lam, 1e-12))), 4)}
 
 
+VC_DRAWS = 40
+"""Simulated draws per walk injection for the variance-component oracle (SE of its power <= 0.08)."""
+
+
+def vc_oracle(sel: Selection, axis: str, q_true: float, seed: int) -> dict:
+    """Power of the walk's variance-component likelihood ratio at the true intensity (the fair yardstick).
+
+    ``VC_DRAWS`` logs are simulated on the cleaned log's used samples (its time stamps, sessions and
+    baseline design): the walk test's null model of that axis (white + colour at their low-frequency
+    white level, ``lrtest.fast_part`` of the point model) plus a fresh walk of intensity q_true
+    [(deg/s)^2 / s] per draw. Each draw gets the analysis' statistic (``lrtest.walk_profile``, on the
+    grid without the parabola, so a touch low) and its chi-bar-square p; the power is the share with
+    p < ALPHA. It knows the walk's intensity, not its path: the most a test of the walk could do.
+    The held-out confirmation the analysis adds is not in it.
+    """
+    from gyrocal.analysis.holdout import ALPHA
+    from gyrocal.analysis.lrtest import chibar_p, fast_part, walk_profile
+
+    prob, k = sel.prob, "xyz".index(axis)
+    null = fast_part(sel.lrs[k].point_model_for([]))
+    t, sess = prob.cols["t"], prob.usable.session
+    start = np.concatenate(([True], sess[1:] != sess[:-1]))
+    dt = np.where(start, 0.0, np.maximum(np.diff(t, prepend=t[0]), 0.0))
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(0.0, 1.0, (t.size, VC_DRAWS)) * np.sqrt(q_true * dt)[:, None]
+    walk = np.empty_like(steps)
+    for s0, s1 in zip(np.flatnonzero(start), [*np.flatnonzero(start)[1:], t.size], strict=True):
+        walk[s0:s1] = np.cumsum(steps[s0:s1], axis=0)
+    ys = walk + rng.normal(0.0, np.sqrt(null.lowfreq_white_var), walk.shape)
+    d, _ = walk_profile(prob, null, prob.base, ys)
+    p = np.array([chibar_p(float(v)) for v in d])
+    return {"vc_oracle_power": round(float(np.mean(p < ALPHA)), 4),
+            "vc_oracle_d_median": round(float(np.median(d)), 2)}
+
+
 def score(found: dict[str, list[str]], own: dict[str, list[str]], cause: str, axis: str,
           freq_ok: bool) -> dict:
     """named / wrong / spill / extra_walk of one injection (see the module docstring)."""
@@ -244,6 +283,7 @@ def run_log(name: str, load: Callable[[], LogData], sizes: list[float], variants
             row = {"kind": "inject", "log": name, "cause": cause, "axis": axis, "size_sigma": size,
                    "variant": v, "amplitude_dps": float(amp), **{k: float(p) for k, p in params.items()},
                    **score(found, own, cause, axis, freq_ok), **oracle(sel, axis, sig, cause),
+                   **(vc_oracle(sel, axis, float(amp) ** 2, 1000 + v) if cause == "random_walk" else {}),
                    "found": {a: found[a] for a in "xyz" if found[a]},
                    "seconds": round(time.perf_counter() - t1, 1)}
             emit(row)
@@ -286,11 +326,47 @@ def summarise(rows: list[dict], sizes: list[float]) -> dict:
             if rs:
                 out["map"][c][s] = {**_rate(rs), "oracle_expected": round(float(np.sum([r["oracle_power"]
                                                                                          for r in rs])), 2)}
+    out["walk"] = walk_summary(inj, sizes)
     alarms = {n: [c for a, cs in r["after_removal"].items() for c in cs if c in REGRESSION]
               for n, r in clean.items()}
     out["real_nulls"] = {"logs": len(clean), "with_regression_cause": sum(bool(v) for v in alarms.values()),
                          "which": {n: v for n, v in alarms.items() if v}}
     return out
+
+
+def walk_summary(inj: list[dict], sizes: list[float]) -> dict:
+    """The walk injections per size and overall: named, the known-path oracle and the variance-component
+    oracle (its mean power, and the named share where it is >= ORACLE_HIGH)."""
+    def one(rs: list[dict]) -> dict:
+        vc = [r for r in rs if "vc_oracle_power" in r]
+        hi = [r for r in vc if r["vc_oracle_power"] >= ORACLE_HIGH]
+        kp = [r for r in rs if r["oracle_power"] >= ORACLE_HIGH]
+        return {"n": len(rs), "named": sum(r["named"] for r in rs),
+                "oracle_mean": round(float(np.mean([r["oracle_power"] for r in rs])), 3) if rs else None,
+                "vc_n": len(vc),
+                "vc_oracle_mean": (round(float(np.mean([r["vc_oracle_power"] for r in vc])), 3)
+                                   if vc else None),
+                "named_where_vc_high": sum(r["named"] for r in hi), "vc_high": len(hi),
+                "named_where_known_path_high": sum(r["named"] for r in kp), "known_path_high": len(kp)}
+
+    walks = [r for r in inj if r["cause"] == "random_walk"]
+    return {"all": one(walks), "by_size": {s: one([r for r in walks if r["size_sigma"] == s]) for s in sizes}}
+
+
+def walk_markdown(s: dict) -> str:
+    """The walk table: named against both oracles, per size."""
+    out = ["| size | named | known-path oracle (mean power) | variance-component oracle (mean power) "
+           "| named where VC oracle >= 0.9 | named where known-path oracle >= 0.9 |",
+           "|---|---|---|---|---|---|"]
+    for key, r in [*s["walk"]["by_size"].items(), ("all", s["walk"]["all"])]:
+        if not r["n"]:
+            continue
+        vc = f"{r['vc_oracle_mean']:.0%}" if r["vc_oracle_mean"] is not None else "-"
+        out.append(f"| {key if key == 'all' else f'{key:g} sigma'} | {r['named']} / {r['n']} "
+                   f"({r['named'] / r['n']:.0%}) | {r['oracle_mean']:.0%} | {vc} | "
+                   f"{r['named_where_vc_high']} / {r['vc_high']} | "
+                   f"{r['named_where_known_path_high']} / {r['known_path_high']} |")
+    return "\n".join(out)
 
 
 def markdown(s: dict) -> str:
@@ -398,8 +474,14 @@ def main(argv: list[str] | None = None) -> int:
         for c in CAUSES:
             print(c, {k: f"{v['named']}/{v['n']} (oracle {v['oracle_expected']})"
                       for k, v in s["map"][c].items()})
+        w = s["walk"]["all"]
+        print(f"random_walk named {w['named']}/{w['n']}; known-path oracle {w['oracle_mean']}, "
+              f"variance-component oracle {w['vc_oracle_mean']} (on {w['vc_n']}); named where VC oracle "
+              f">= {ORACLE_HIGH}: {w['named_where_vc_high']}/{w['vc_high']}")
         if args.markdown:
             print(markdown(s))
+            print()
+            print(walk_markdown(s))
         if args.json:
             Path(args.json).write_text(json.dumps(s, indent=1) + "\n")
         if args.plot:

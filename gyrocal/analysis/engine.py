@@ -16,6 +16,7 @@ from gyrocal.analysis import diagnostics as dg
 from gyrocal.analysis.baseline import GRAVITY_TERMS, Problem, build_problem, noise_dps, residual_stats
 from gyrocal.analysis.candidates import Candidate, all_candidates
 from gyrocal.analysis.causes import (
+    WALK_HOLDOUT_P,
     AxisResult,
     cause_coefficients,
     cause_params,
@@ -44,8 +45,10 @@ TEST_NAME = (
     "over 6 causes x 3 axes); explained share = held-out blocked CV"
 )
 WALK_TEST_NAME = (
-    "held-out blocked CV: the slow states smoothed from training blocks predict held-out blocks; "
-    f"one-sided t-test over blocks at p < {ALPHA:.2g} and >= {MIN_FRACTION} of the variance left"
+    "variance-component likelihood ratio: white + colour with and without a random walk, its intensity "
+    "by restricted maximum likelihood, chi-bar-square (50:50 of 0 and chi-square(1)) at p < "
+    f"{ALPHA:.2g}; confirmed held out (the walk smoothed from training blocks predicts held-out blocks, "
+    f"one-sided t-test at p < {WALK_HOLDOUT_P} and >= {MIN_FRACTION} of the variance left)"
 )
 
 
@@ -214,6 +217,10 @@ def _findings(prob: Problem, per_axis: list[AxisResult], by_name: dict[str, Cand
         params = cause_params(prob, by_name[cause], coefs.get(cause, {}))
         if cause == "random_walk":
             params.update(walk_params({a: models[a] for a in axes}))
+            # the intensity the walk's likelihood ratio estimated (REML), beside the Allan fit's
+            params["lr_dps_per_sqrt_s"] = {a: float(np.sqrt(r.walk.q_hat))
+                                           for a, r in zip(AXES, per_axis, strict=True)
+                                           if a in axes and r.walk is not None}
         out.append({
             "cause": cause, "axes": axes, "explained_fraction": round(frac, 4), "p_value": p,
             "test": WALK_TEST_NAME if cause == "random_walk" else TEST_NAME, "params": params,

@@ -49,6 +49,7 @@ class AxisLR:
     models: dict[tuple[str, ...], NoiseModel] = field(default_factory=dict)  # ('point', ...) too
     warmup_tau_s: float | None = None  # this axis' warm-up tau when not the pooled one [s]
     tests: dict[tuple[tuple[str, ...], str], tuple[float, float]] = field(default_factory=dict)
+    walks: dict[tuple[str, ...], WalkLR] = field(default_factory=dict)  # walk_lr's cache
 
     def design(self, causes: list[str] | tuple[str, ...]) -> np.ndarray:
         return np.column_stack([self.prob.base, *[self.cols[c] for c in causes]])
@@ -237,3 +238,132 @@ def smooth_full(prob: Problem, model: NoiseModel, axis: int, x: np.ndarray) -> t
     g = gls.gram(np.column_stack([x, y]))
     beta = gram_solve(g[:-1, :-1], g[:-1, -1], prob.n)
     return beta, gls.smooth(y - x @ beta)
+
+
+# --- the random walk by a variance-component likelihood ratio (issue 12, s12walk) -------------------
+
+WALK_GRID_STEP_DEC = 0.5
+"""Step of the walk-intensity grid [decades of q]; the best grid point is refined by a parabola."""
+WALK_GRID_BELOW_DEC = 1.0
+"""How far below q0 = s2 / (fs T^2) the grid starts [decades]: q0 is the walk whose spread over a
+session T equals the standard error of the session's mean under the white level s2, so a walk well
+below it cannot be seen."""
+
+
+def fast_part(model: NoiseModel) -> NoiseModel:
+    """The error model without its slow states: white + colour only (the walk test's null)."""
+    return NoiseModel(model.rate_hz, model.white_var, list(model.fast), 0.0)
+
+
+def with_walk(model: NoiseModel, q: float) -> NoiseModel:
+    """``model`` (white + colour) plus a random walk of intensity q [(deg/s)^2 / s]."""
+    return NoiseModel(model.rate_hz, model.white_var, list(model.gm), float(q))
+
+
+def _reml_terms(gls: StateSpaceGLS, x: np.ndarray, ys: np.ndarray, n: int, rank: int
+                ) -> tuple[np.ndarray, float]:
+    """(Q per column of ys (K,), log det V + log pdet X'V^-1X) under one error model.
+
+    Q is the GLS residual quadratic form of each y on x; the pseudo-determinant takes the ``rank``
+    largest eigenvalues of the column-scaled Gram (the scaling is V-independent, so it cancels in a
+    likelihood ratio)."""
+    p = x.shape[1]
+    g = gls.gram(np.column_stack([x, ys]))
+    gx, gy = g[:p, :p], g[:p, p:]
+    beta = gram_solve(gx, gy, n)
+    q = np.diag(g[p:, p:]) - np.einsum("pk,pk->k", gy, beta)
+    scale = np.sqrt(np.maximum(np.sum(x * x, axis=0), 1e-300))
+    lam = np.linalg.eigvalsh(gx / np.outer(scale, scale))
+    logdet_x = float(np.sum(np.log(np.maximum(lam[-rank:], 1e-300)))) if rank else 0.0
+    return q, float(gls.logdet_v) + logdet_x
+
+
+def walk_grid(prob: Problem, model: NoiseModel) -> np.ndarray:
+    """Walk intensities q [(deg/s)^2 / s] the profile likelihood is evaluated at (ascending)."""
+    s2 = model.lowfreq_white_var
+    spans = [float(np.ptp(prob.cols["t"][prob.usable.session == s])) for s in np.unique(prob.usable.session)]
+    span = max(float(np.mean(spans)), 10.0 / model.rate_hz)
+    lo = np.log10(s2 / (model.rate_hz * span**2)) - WALK_GRID_BELOW_DEC
+    hi = np.log10(s2 * model.rate_hz)
+    return 10.0 ** np.arange(lo, hi + 1e-9, WALK_GRID_STEP_DEC)
+
+
+@dataclass
+class WalkLR:
+    """The variance-component likelihood ratio for a random walk on one axis (see ``walk_lr``)."""
+
+    q_hat: float  # [(deg/s)^2 / s], 0 when the likelihood is largest without a walk
+    d: float
+    p_value: float
+    null: NoiseModel  # white + colour (the model without slow states)
+
+    @property
+    def model(self) -> NoiseModel:
+        """The alternative at its estimate: white + colour + walk(q_hat)."""
+        return with_walk(self.null, self.q_hat)
+
+
+def walk_profile(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Restricted log-likelihood ratio D (K,) and its argmax q (K,) of a walk against none, per column.
+
+    l(q) = -1/2 [Q(q) + log det V(q) + log pdet X'V(q)^-1 X] (REML: the mean model is the same under
+    both hypotheses, so the restricted likelihoods are comparable, and they do not take the
+    regression's absorbed share of the wander for missing walk power). Evaluated on ``walk_grid``;
+    the best grid point is refined by a parabola in log q (one more evaluation). Several columns ys
+    (M, K) share every banded factorisation, so simulated draws cost one solve per grid point.
+    """
+    ys = ys.reshape(ys.shape[0], -1)
+    n = prob.n
+    _, rank = gram_solve(x.T @ x, x.T @ ys[:, :1], n, return_rank=True)
+    t, sess = prob.cols["t"], prob.usable.session
+
+    def ll(q: float) -> np.ndarray:
+        gls = StateSpaceGLS(with_walk(null, q), t, sess)
+        qf, logdet = _reml_terms(gls, x, ys, n, rank)
+        return -0.5 * (qf + logdet)
+
+    l0 = ll(0.0)
+    grid = walk_grid(prob, null)
+    ls = np.array([ll(q) for q in grid])  # (G, K)
+    best = np.argmax(ls, axis=0)
+    d = 2.0 * (ls[best, np.arange(ls.shape[1])] - l0)
+    q_hat = grid[best]
+    for k in range(ys.shape[1]):  # parabola through the best point and its neighbours, in log q
+        j = int(best[k])
+        if 0 < j < len(grid) - 1:
+            a, b, c = ls[j - 1, k], ls[j, k], ls[j + 1, k]
+            den = a - 2 * b + c
+            if den < 0:
+                shift = 0.5 * (a - c) / den * WALK_GRID_STEP_DEC
+                qv = float(q_hat[k] * 10.0**shift)
+                lv = float(ll(qv)[k]) if ys.shape[1] == 1 else None
+                if lv is not None and 2 * (lv - l0[k]) > d[k]:
+                    d[k], q_hat[k] = 2 * (lv - l0[k]), qv
+    pos = d > 0
+    return np.where(pos, d, 0.0), np.where(pos, q_hat, 0.0)
+
+
+def chibar_p(d: float) -> float:
+    """p-value of a variance component on its boundary: the 50:50 mixture of 0 and chi-square(1)."""
+    return float(0.5 * stats.chi2.sf(d, 1)) if d > 0 else 1.0
+
+
+def walk_lr(lr: AxisLR, chosen: list[str]) -> WalkLR:
+    """Is there a random walk on this axis, given baseline + ``chosen`` causes? (cached on ``lr``)
+
+    The null is the axis' point error model without its slow states (white + colour, fitted to the
+    Allan octaves of the model-so-far residual); the alternative adds a random walk whose intensity q
+    is re-estimated by (restricted) maximum likelihood, the rest of the model held. D = 2 (l(q_hat) -
+    l(0)) is referred to the boundary null (chi-bar-square, 50:50 of 0 and chi-square(1)), which is
+    conservative for a walk (q_hat = 0 happens more than half the time under the null in a time
+    series: the pile-up of the local-level model). Unlike the held-out t-test over blocks this
+    needs no slow power in the Allan fit and weighs every sample, not a handful of blocks.
+    """
+    key = ("walk", *chosen)
+    if key not in lr.walks:
+        null = fast_part(lr.point_model_for(chosen))
+        x = lr.design(chosen)
+        d, q = walk_profile(lr.prob, null, x, lr.prob.y[:, lr.axis])
+        lr.walks[key] = WalkLR(float(q[0]), float(d[0]), chibar_p(float(d[0])), null)
+    return lr.walks[key]

@@ -1,0 +1,76 @@
+"""The random walk's variance-component likelihood ratio (``lrtest.walk_lr``, issue 12).
+
+The test's null distribution (chi-bar-square, 50:50 of 0 and chi-square(1)) is checked on draws
+simulated on a real problem's time stamps and design, its power on a walk it should see, and the
+named walk's confirmation on a log without one. The many-seed false-alarm count is in
+benchmarks/bench_analyze.py --backgrounds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gyrocal.analysis.baseline import Problem, build_problem
+from gyrocal.analysis.candidates import all_candidates
+from gyrocal.analysis.causes import select_axis
+from gyrocal.analysis.hidden import generate, inject
+from gyrocal.analysis.holdout import ALPHA
+from gyrocal.analysis.lrtest import build_axis_lr, chibar_p, fast_part, walk_lr, walk_profile
+from gyrocal.analysis.segments import usable_samples
+from gyrocal.analysis.timestamps import retime
+from gyrocal.model.terms import derived_columns
+
+
+def _problem(cols: dict) -> Problem:
+    cols = derived_columns(retime(cols)[0])
+    return build_problem(cols, usable_samples(cols))
+
+
+def _walk_draws(prob: Problem, q: float, s2: float, n: int, seed: int) -> np.ndarray:
+    """n columns of white noise (variance s2) + a walk of intensity q [(deg/s)^2/s] (continuous over
+    the sessions: their offsets take its level at each start)."""
+    rng = np.random.default_rng(seed)
+    t, sess = prob.cols["t"], prob.usable.session
+    start = np.concatenate(([True], sess[1:] != sess[:-1]))
+    dt = np.where(start, 0.0, np.diff(t, prepend=t[0]))
+    walk = np.cumsum(rng.normal(0, 1, (t.size, n)) * np.sqrt(q * dt)[:, None], axis=0)
+    return walk + rng.normal(0, np.sqrt(s2), walk.shape)
+
+
+def test_null_distribution_is_the_boundary_mixture_and_a_walk_is_seen() -> None:
+    cols, _ = generate(33000, causes=[])
+    prob = _problem(cols)
+    lr = build_axis_lr(prob, all_candidates(prob), 0)
+    null = fast_part(lr.point_model_for([]))
+    s2 = null.lowfreq_white_var
+    d0, q0 = walk_profile(prob, null, prob.base, _walk_draws(prob, 0.0, s2, 200, 1))
+    p0 = np.array([chibar_p(float(d)) for d in d0])
+    # about half the draws sit on the boundary (q_hat = 0); the tail follows the mixture
+    assert 0.35 <= np.mean(q0 == 0) <= 0.8
+    assert 0.01 <= np.mean(p0 < 0.1) <= 0.2
+    assert np.mean(p0 < 0.01) <= 0.04
+    # a walk of 300 x q0 = s2 / (fs T^2) (T = 180 s sessions: its RMS over a session is about
+    # 0.3 x the per-sample noise) is seen in most draws
+    span = 180.0
+    q = 300.0 * s2 / (prob.rate_hz * span**2)
+    d1, q1 = walk_profile(prob, null, prob.base, _walk_draws(prob, q, s2, 40, 2))
+    p1 = np.array([chibar_p(float(d)) for d in d1])
+    assert np.mean(p1 < ALPHA) >= 0.8
+    assert 0.2 < np.median(q1[q1 > 0]) / q < 5.0  # the intensity is estimated, not only detected
+
+
+def test_walk_named_on_a_walk_and_not_on_white_noise() -> None:
+    cols, _ = generate(33001, causes=[])
+    prob = _problem(cols)
+    cands = all_candidates(prob)
+    for k in range(3):
+        res = select_axis(prob, k, cands, 1.0, lr=build_axis_lr(prob, cands, k))
+        assert "random_walk" not in [s.cause for s in res.steps]
+    walked = inject(cols, "random_walk", 3e-4, ["y"], seed=5)
+    prob = _problem(walked)
+    cands = all_candidates(prob)
+    lr = build_axis_lr(prob, cands, 1)
+    w = walk_lr(lr, [])
+    assert w.p_value < ALPHA and w.q_hat > 0
+    res = select_axis(prob, 1, cands, 1.0, lr=lr)
+    assert [s.cause for s in res.steps] == ["random_walk"]
