@@ -117,8 +117,8 @@ def test_watchdog_interval_is_half_of_watchdog_usec_for_our_pid(monkeypatch, use
 # A stand-in for the daemon's use of the Notifier: READY=1 once up, WATCHDOG=1 every interval from
 # its loop, STOPPING=1 on SIGTERM. The daemon core has its own end-to-end test of the real loop.
 # The handler only appends to a list (no lock): an Event.set() in it could interrupt stop.wait()
-# holding the Event's lock and wait for it forever (a fresh-clone CI run timed out here, the same
-# deadlock as the daemon's own handlers had; see tests/test_daemon_signals.py).
+# holding the Event's lock and wait for it forever, the deadlock the daemon's own handlers had (see
+# tests/test_daemon_signals.py). A fresh-clone CI run timed out here once; that is the likely cause.
 CHILD = textwrap.dedent("""
     import signal, sys, time
     from gyrocal.daemon.notify import Notifier
