@@ -107,15 +107,10 @@ def select(columns: dict[str, np.ndarray]) -> Selection:
     """The cause selection of ``analyze`` (same steps, same tau re-run for periodic), without the
     error-model twin, the noise causes and fidelity."""
     from gyrocal.analysis import engine
-    from gyrocal.analysis.baseline import build_problem
     from gyrocal.analysis.candidates import all_candidates
     from gyrocal.analysis.lrtest import build_axis_lr
-    from gyrocal.analysis.segments import usable_samples
-    from gyrocal.analysis.timestamps import retime
-    from gyrocal.model.terms import derived_columns
 
-    cols = derived_columns(retime(columns)[0])
-    prob = build_problem(cols, usable_samples(cols))
+    prob = engine.problem_of(columns)
     cands = all_candidates(prob)
     lrs = [build_axis_lr(prob, cands, k) for k in range(3)]
     tau_s = engine.DEFAULT_TAU_S

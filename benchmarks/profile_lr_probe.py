@@ -22,15 +22,13 @@ import argparse
 import numpy as np
 from scipy import stats
 
-from gyrocal.analysis.baseline import Problem, build_problem, gram_solve
+from gyrocal.analysis.baseline import Problem, gram_solve
 from gyrocal.analysis.candidates import all_candidates
+from gyrocal.analysis.engine import problem_of
 from gyrocal.analysis.gls import StateSpaceGLS
 from gyrocal.analysis.hidden import HardCase, add_background, generate, generate_hard
 from gyrocal.analysis.lrtest import build_axis_lr
 from gyrocal.analysis.noisemodel import FAST_SAMPLES, NoiseModel
-from gyrocal.analysis.segments import usable_samples
-from gyrocal.analysis.timestamps import retime
-from gyrocal.model.terms import derived_columns
 
 KAPPAS = (0.0, *np.exp(np.linspace(np.log(1 / 16), np.log(16), 13)))
 CAUSES = ("warmup", "temperature", "temperature_rate")
@@ -56,8 +54,7 @@ def profile(prob: Problem, m: NoiseModel, x: np.ndarray, y: np.ndarray) -> tuple
 
 
 def probe(cols: dict, label: str) -> list[dict]:
-    cols = derived_columns(retime(cols)[0])
-    prob = build_problem(cols, usable_samples(cols))
+    prob = problem_of(cols)
     cands = all_candidates(prob)
     rows = []
     for k in range(3):

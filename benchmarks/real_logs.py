@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from gyrocal.analysis.engine import analyze
+from gyrocal.analysis.engine import analyze, problem_of
 from gyrocal.datasets._common import data_dir
 from gyrocal.datasets.imu_tk import load_imu_tk
 from gyrocal.datasets.imucal import load_imucal
@@ -86,16 +86,6 @@ BAND_HZ = 1.0
 """Half-width [Hz] of the band around the second-pass frequency in which each half's peak is taken."""
 
 
-def _half_problem(half: LogData):
-    from gyrocal.analysis.baseline import build_problem
-    from gyrocal.analysis.segments import usable_samples
-    from gyrocal.analysis.timestamps import retime
-    from gyrocal.model.terms import derived_columns
-
-    cols = derived_columns(retime(half.columns)[0])
-    return build_problem(cols, usable_samples(cols))
-
-
 def line_reproduced(log: LogData, cols: dict, finding: dict) -> dict:
     """Is a second-pass periodic finding a line of the sensor? A cross-validated check on the halves.
 
@@ -113,7 +103,7 @@ def line_reproduced(log: LogData, cols: dict, finding: dict) -> dict:
     from gyrocal.analysis.lrtest import AxisLR
 
     f0 = float(finding["params"]["frequency_hz"])
-    probs = [_half_problem(h) for h in halves(log, cols)]
+    probs = [problem_of(h.columns) for h in halves(log, cols)]
     peaks = []
     for prob in probs:
         beta, _ = lstsq(prob.base, prob.y)

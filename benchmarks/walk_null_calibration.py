@@ -16,14 +16,11 @@ import sys
 
 import numpy as np
 
-from gyrocal.analysis.baseline import build_problem
 from gyrocal.analysis.candidates import all_candidates
+from gyrocal.analysis.engine import problem_of
 from gyrocal.analysis.hidden import add_background, generate
 from gyrocal.analysis.holdout import ALPHA
 from gyrocal.analysis.lrtest import build_axis_lr, walk_lr
-from gyrocal.analysis.segments import usable_samples
-from gyrocal.analysis.timestamps import retime
-from gyrocal.model.terms import derived_columns
 
 
 def calibrate(kind: str, seeds: range) -> dict:
@@ -31,8 +28,7 @@ def calibrate(kind: str, seeds: range) -> dict:
     for seed in seeds:
         cols, _ = generate(seed, causes=[])
         cols = add_background(cols, kind, seed)
-        cols = derived_columns(retime(cols)[0])
-        prob = build_problem(cols, usable_samples(cols))
+        prob = problem_of(cols)
         cands = all_candidates(prob)
         for k in range(3):
             w = walk_lr(build_axis_lr(prob, cands, k), [])

@@ -80,6 +80,14 @@ def _select(prob: Problem, cands: list[Candidate], tau_s: float, say: Callable[[
     return out
 
 
+def problem_of(columns: dict[str, np.ndarray]) -> Problem:
+    """The regression problem ``analyze`` builds from a log's columns: re-timed to the sample clock,
+    with the derived columns (t_on, dtemp), over the usable still samples. For the benchmarks that
+    run parts of the analysis on injected, halved or simulated logs."""
+    cols = derived_columns(retime(columns)[0])
+    return build_problem(cols, usable_samples(cols))
+
+
 def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: int = 0) -> Analysis:
     """Run the whole analysis on a log (Contract 1) and return the Contract 2 result."""
     say = progress or (lambda _msg: None)

@@ -310,8 +310,9 @@ def walk_profile(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
     l(q) = -1/2 [Q(q) + log det V(q) + log pdet X'V(q)^-1 X] (REML: the mean model is the same under
     both hypotheses, so the restricted likelihoods are comparable, and they do not take the
     regression's absorbed share of the wander for missing walk power). Evaluated on ``walk_grid``;
-    the best grid point is refined by a parabola in log q (one more evaluation). Several columns ys
-    (M, K) share every banded factorisation, so simulated draws cost one solve per grid point.
+    the best grid point of a single column is refined by a parabola in log q (one more evaluation).
+    Several columns ys (M, K) share every banded factorisation, so simulated draws cost one solve per
+    grid point; they keep their grid point (a refinement would need one more solve per draw).
     """
     ys = ys.reshape(ys.shape[0], -1)
     n = prob.n
@@ -329,17 +330,16 @@ def walk_profile(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
     best = np.argmax(ls, axis=0)
     d = 2.0 * (ls[best, np.arange(ls.shape[1])] - l0)
     q_hat = grid[best]
-    for k in range(ys.shape[1]):  # parabola through the best point and its neighbours, in log q
-        j = int(best[k])
-        if 0 < j < len(grid) - 1:
-            a, b, c = ls[j - 1, k], ls[j, k], ls[j + 1, k]
-            den = a - 2 * b + c
-            if den < 0:
-                shift = 0.5 * (a - c) / den * WALK_GRID_STEP_DEC
-                qv = float(q_hat[k] * 10.0**shift)
-                lv = float(ll(qv)[k]) if ys.shape[1] == 1 else None
-                if lv is not None and 2 * (lv - l0[k]) > d[k]:
-                    d[k], q_hat[k] = 2 * (lv - l0[k]), qv
+    j = int(best[0])
+    # one column: a parabola through the best point and its neighbours, in log q (draws keep the grid)
+    if ys.shape[1] == 1 and 0 < j < len(grid) - 1:
+        a, b, c = ls[j - 1, 0], ls[j, 0], ls[j + 1, 0]
+        den = a - 2 * b + c
+        if den < 0:
+            qv = float(q_hat[0] * 10.0 ** (0.5 * (a - c) / den * WALK_GRID_STEP_DEC))
+            lv = float(ll(qv)[0])
+            if 2 * (lv - l0[0]) > d[0]:
+                d[0], q_hat[0] = 2 * (lv - l0[0]), qv
     pos = d > 0
     return np.where(pos, d, 0.0), np.where(pos, q_hat, 0.0)
 
