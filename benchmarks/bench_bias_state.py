@@ -16,10 +16,11 @@ is not counted as drift), RMS over the rests [deg/h]:
 
 Methods: ``rls`` (lambda 1, the daemon's default), ``rls_forget`` (lambda 0.9999, ~100 s of still
 samples: the other way to follow a wander, seed 003), ``kf_spec`` (method kf, intensities from an
-Allan fit (``fit_noise_terms``) of a separate 4 h still recording of the same unit, as ``gyrocal
-analyze`` would write them) and ``kf_true`` (method kf, the truth's intensities), both with
-``horizon_s`` = the window after the push. Cases: ``walk+flicker`` (the issue's unit), ``flicker``
-only, and ``none`` (a control: the bias state must cost nothing).
+Allan fit (``fit_noise_terms``) of a separate 4 h still recording of the same unit),
+``kf_analyze`` (method kf, the bias blocks that ``gyrocal analyze`` itself writes from that
+recording, ``extend.bias_spec``; ``--no-analyze`` leaves it out) and ``kf_true`` (method kf, the
+truth's intensities), all with ``horizon_s`` = the window after the push. Cases: ``walk+flicker``
+(the issue's unit), ``flicker`` only, and ``none`` (a control: the bias state must cost nothing).
 """
 
 from __future__ import annotations
@@ -79,6 +80,20 @@ def spec_from_still_log(model: TruthModel, seed: int, seconds: float) -> tuple[d
     return spec, shown
 
 
+def spec_from_analyze(model: TruthModel, seed: int, seconds: float) -> tuple[dict, dict]:
+    """What ``gyrocal analyze`` writes for the daemon from the same still recording: its findings'
+    bias blocks (``extend.bias_spec``, the part of OUT.terms.yaml that ``BiasModel.from_spec`` reads)
+    and the findings named, so the on-line gain is measured through the real analysis path."""
+    from gyrocal.analysis.engine import analyze
+    from gyrocal.analysis.extend import bias_spec
+    from gyrocal.logformat import LogData
+
+    c = SessionStream(model, still(), RATE_HZ, seed=10_000 + seed, boot=0).chunk(int(seconds * RATE_HZ))
+    cols = {k: c[k] for k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")}
+    r = analyze(LogData(cols, {}, [], "still recording"), seed=seed).result
+    return bias_spec(r["findings"], r["allan_terms"]), {f["cause"]: f["axes"] for f in r["findings"]}
+
+
 def true_bias(model: TruthModel) -> BiasModel:
     e = model.effects
     mid = float(np.sqrt(FLICKER_BAND_S[0] * FLICKER_BAND_S[1]))
@@ -91,13 +106,19 @@ def _terms(cols: dict) -> np.ndarray:
     return SPEC.design({"gx": cols["gx"], "gy": cols["gy"], "gz": cols["gz"]})
 
 
-def run_one(model: TruthModel, seed: int, session_s: float, after_s: float, spec: dict) -> dict:
+def run_one(model: TruthModel, seed: int, session_s: float, after_s: float, spec: dict,
+            analyzed: dict | None = None) -> dict:
     """One session per method on the same stream; the drift left after each method's push [deg/h]."""
     ests = {
         "rls": make_estimator("rls"),
         "rls_forget": make_estimator("rls", forgetting=0.9999),
         "kf_spec": make_estimator("kf", bias=BiasModel.from_spec(spec, "allan read-off"), dt_s=1 / RATE_HZ,
                                   horizon_s=after_s),
+    }
+    if analyzed is not None:
+        ests["kf_analyze"] = make_estimator("kf", bias=BiasModel.from_spec(analyzed, "analyze spec"),
+                                            dt_s=1 / RATE_HZ, horizon_s=after_s)
+    ests |= {
         "kf_true": make_estimator("kf", bias=true_bias(model), dt_s=1 / RATE_HZ, horizon_s=after_s),
     }
     cpu = dict.fromkeys(ests, 0.0)
@@ -225,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--after", type=float, default=600.0, metavar="S", help="window after the push [s]")
     ap.add_argument("--still-log", type=float, default=14400.0, metavar="S",
                     help="length of the still recording the spec is read from [s] (default 14400)")
+    ap.add_argument("--no-analyze", action="store_true",
+                    help="leave out kf_analyze (the spec `gyrocal analyze` writes from the still log)")
     ap.add_argument("--daemon", action="store_true",
                     help="end to end: the daemon with rls and with kf on a walk+flicker virtual unit")
     ap.add_argument("--work", default="out/bench_bias_state", help="work directory of --daemon")
@@ -257,8 +280,11 @@ def main(argv: list[str] | None = None) -> int:
     for case in cases:
         model = unit(case)
         spec, shown = spec_from_still_log(model, 0, args.still_log)
-        runs = [run_one(model, s, args.session, args.after, spec) for s in range(args.seeds)]
+        analyzed, named = (None, None) if args.no_analyze else spec_from_analyze(model, 0, args.still_log)
+        runs = [run_one(model, s, args.session, args.after, spec, analyzed) for s in range(args.seeds)]
         summary: dict = {"truth": CASES[case], "allan_read_off": shown, "spec": spec, "methods": {}}
+        if analyzed is not None:
+            summary |= {"analyze_findings": named, "analyze_spec": analyzed}
         for name in runs[0]:
             at = np.array([r[name]["at_push_dph"] for r in runs])
             af = np.array([r[name]["after_dph"] for r in runs])
@@ -280,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
         res["cases"][case] = summary
         if not args.json:
             print(f"\n{case}: truth {CASES[case]}, spec from a {args.still_log:.0f} s still log")
+            if analyzed is not None:
+                print(f"analyze names {named}; its bias blocks {json.dumps(analyzed)}")
             print(f"{'method':<12} {'at push deg/h':>14} {'x rls':>7} {f'next {args.after:.0f}s deg/h':>16} "
                   f"{'x rls':>7} {'above floor':>12} {'x rls':>7} {'samples/cpu-s':>14}")
             for name, m in summary["methods"].items():

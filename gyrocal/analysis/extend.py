@@ -2,10 +2,12 @@
 
 The spec file is YAML ``{terms: [...]}`` (the Contract 3 term names, loadable by ``gyrocal fit
 --terms-file`` and the daemon). A random-walk finding is not a regression term: it is written as a
-``random_walk`` block (the bias state's intensity per axis [deg/s/sqrt(s)]) for an estimator that
-tracks the bias with a Kalman filter or with forgetting (seed 003); ``noise_model`` gives each axis'
-fitted error model (white, colour and flicker Gauss-Markov members, walk) for a truth model or a
-bias-state filter. Extra keys are information for people; loaders read ``terms``.
+``random_walk`` block (the bias state's intensity per axis [deg/s/sqrt(s)]) and a
+``bias_instability`` block (the flicker floor B [deg/s] at tau_B [s]), which the daemon's ``kf``
+estimator loads (``bias_spec``, ``BiasModel.from_spec``) to track the bias (seed 003);
+``noise_model`` gives each axis' fitted error model (white, colour and flicker Gauss-Markov
+members, walk) for a truth model or a bias-state filter. Extra keys are information for people;
+loaders read ``terms``.
 """
 
 from __future__ import annotations
@@ -25,8 +27,7 @@ def write_spec(path: str | Path, result: dict, source: str = "") -> Path:
     doc: dict = {"terms": list(result["extended"]["terms"])}
     doc["causes"] = {f["cause"]: {"axes": f["axes"], "params": _plain(f["params"])}
                      for f in result["findings"]}
-    if result["extended"].get("random_walk"):
-        doc["random_walk"] = _plain(result["extended"]["random_walk"])
+    doc.update(_plain(bias_spec(result["findings"], result["allan_terms"])))
     if result.get("noise_model"):  # per axis: white, colour and flicker bank (tau, SD), walk, ARW
         doc["noise_model"] = _plain(result["noise_model"])
     doc["source"] = f"gyrocal analyze {source}".strip()
@@ -35,6 +36,54 @@ def write_spec(path: str | Path, result: dict, source: str = "") -> Path:
     p.write_text("# extended drift model written by gyrocal analyze; `terms` is the model spec\n"
                  + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     return p
+
+
+def bias_spec(findings: list[dict], allan_terms: dict) -> dict:
+    """The bias-state blocks the daemon's ``kf`` estimator reads (``BiasModel.from_spec``).
+
+    Why: the filter has one walk and one Gauss-Markov state per axis, and needs their intensities
+    at the time scales a push must hold (minutes), where the wander's Allan curve has its floor. The
+    findings say which axes wander; the intensities come from the joint N, B, K fit of the residual's
+    Allan curve (``allan_terms[axis].joint_fit``, the extended regressions' residual up to a tenth
+    of the used span), as allan_variance_ros users read them. Before 2026-11-26 the spec carried the
+    finding's walk alone, so a flicker floor never reached the filter, and mikoff imu1 y (walk part
+    0) got no state at all. The finding's slow Gauss-Markov bank was tried in its place and did worse
+    than no bias state: its floor sits at a few seconds, where the flicker acts as noise
+    (``benchmarks/bench_bias_state.py``, docs/estimators.md).
+
+    Per axis named random_walk or bias_instability:
+    - ``bias_instability: {dps: B, tau_s: tau_B}``: B [deg/s] from the joint fit, tau_B [s] where
+      the measured curve has its minimum (the IEEE read-off's tau); 0 on other axes;
+    - ``random_walk.dps_per_sqrt_s`` [deg/s/sqrt(s)], random_walk axes only: the joint fit's K; where
+      the fit gives the axis neither K nor B, the finding's own walk, else the likelihood ratio's
+      REML intensity (``lr_dps_per_sqrt_s``), so a named wander never becomes an empty state.
+    """
+    by = {f["cause"]: f for f in findings}
+    rw = by.get("random_walk")
+    walk_axes = set(rw["axes"]) if rw else set()
+    axes = walk_axes | set(by["bias_instability"]["axes"] if "bias_instability" in by else [])
+
+    def fit(a: str, term: str) -> float:
+        v = float(((allan_terms.get(a) or {}).get("joint_fit") or {}).get(term, {}).get("value", 0.0))
+        return v if np.isfinite(v) and v > 0 else 0.0
+
+    b_dps = {a: fit(a, "bias_instability") for a in axes}
+    tau_b = {a: float(allan_terms[a]["bias_instability"]["tau_s"][0]) for a in axes if b_dps[a] > 0}
+    out: dict = {}
+    if rw is not None:
+        p = rw["params"]
+        walk = {}
+        for a in rw["axes"]:
+            walk[a] = fit(a, "rate_random_walk")
+            if walk[a] <= 0 and b_dps[a] <= 0:  # the finding's own walk, else the REML one
+                walk[a] = float(p.get("dps_per_sqrt_s", {}).get(a, 0.0)) \
+                    or float(p.get("lr_dps_per_sqrt_s", {}).get(a, 0.0))
+        out["random_walk"] = {"dps_per_sqrt_s": walk}
+    if tau_b:
+        mean_tau = float(np.exp(np.mean(np.log(list(tau_b.values())))))
+        out["bias_instability"] = {"dps": {a: b_dps.get(a, 0.0) for a in AXES},
+                                   "tau_s": {a: tau_b.get(a, mean_tau) for a in AXES}}
+    return out
 
 
 def _plain(x):

@@ -247,7 +247,8 @@ def read_noise_terms(curve: AllanCurve) -> NoiseTerms:
     return NoiseTerms(arw, b, rrw)
 
 
-def fit_noise_terms(curve: AllanCurve, max_tau_s: float | None = None) -> NoiseTerms:
+def fit_noise_terms(curve: AllanCurve, max_tau_s: float | None = None,
+                    min_tau_s: float | None = None) -> NoiseTerms:
     """N, B, K fitted jointly: sigma^2(tau) = N^2 / tau + (0.664 B)^2 + K^2 tau / 3, all >= 0.
 
     The slope read-off reads each term where its slope is closest, so where two terms overlap (a
@@ -261,6 +262,8 @@ def fit_noise_terms(curve: AllanCurve, max_tau_s: float | None = None) -> NoiseT
     from scipy.optimize import nnls
 
     sel = np.ones(curve.tau_s.size, dtype=bool) if max_tau_s is None else curve.tau_s <= max_tau_s
+    if min_tau_s is not None:  # leave out a coloured sensor's short-tau hump, which the fit has no term for
+        sel &= curve.tau_s >= min_tau_s
     tau, avar, edf = curve.tau_s[sel], curve.adev[sel] ** 2, curve.edf[sel]
     nan = NoiseTerm(float("nan"), float("nan"), float("nan"), ())
     if tau.size < 3:

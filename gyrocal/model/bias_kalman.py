@@ -97,7 +97,8 @@ class BiasModel:
 
     @classmethod
     def from_spec(cls, doc: Mapping[str, Any], source: str = "spec") -> BiasModel:
-        """The intensities of an analysis spec (``gyrocal analyze --out OUT`` writes OUT.terms.yaml).
+        """The intensities of an analysis spec (``gyrocal analyze LOG --json OUT.json`` writes
+        OUT.terms.yaml).
 
         Keys read (each optional; per-axis values are {x:, y:, z:} mappings, a list of 3, or one number):
 
@@ -139,8 +140,8 @@ class BiasModel:
 def load_bias_spec(terms: Any, config_path: str | Path) -> BiasModel:
     """The bias intensities for a daemon config's ``estimator.terms``: read from the terms file.
 
-    ``gyrocal analyze --out OUT`` writes OUT.terms.yaml with ``terms`` and the bias blocks, so naming
-    that file as the estimator's terms brings both. ``seed000`` or an inline list: no bias states
+    ``gyrocal analyze LOG --json OUT.json`` writes OUT.terms.yaml with ``terms`` and the bias blocks,
+    so naming that file as the estimator's terms brings both. ``seed000`` or an inline list: no bias states
     (the filter is then a Kalman form of RLS). A relative path is taken from the config's directory.
     """
     if not isinstance(terms, str) or terms == "seed000":
