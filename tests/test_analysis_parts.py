@@ -115,3 +115,18 @@ def test_findings_map_onto_the_truth_model_so_the_simulation_can_rerun(tmp_path:
         else:
             assert model.effects.warmup_dps[k] == 0.0
     assert model.effects.warmup_tau_s == pytest.approx(hidden.effects.warmup_tau_s, rel=0.3)
+
+
+def test_the_report_of_a_real_log_with_noise_findings_is_written(tmp_path: Path) -> None:
+    """imucal names coloured_noise (a noise cause: no fitted effect). The report crashed on it
+    (KeyError in the finding plot) and, since it was written before the JSON, lost the result too;
+    the ADIS16405 recordings of SMAC-Group/imudata showed it after a 2-minute analysis."""
+    csv, out, rep = tmp_path / "imucal.csv", tmp_path / "imucal.json", tmp_path / "rep"
+    assert main(["convert", "imucal", str(csv)]) == 0
+    assert main(["analyze", str(csv), "--json", str(out), "--report", str(rep), "--quiet"]) == 0
+    r = json.loads(out.read_text())
+    assert "coloured_noise" in {f["cause"] for f in r["findings"]}
+    md = (rep / "report.md").read_text()
+    assert "coloured_noise" in md and "the fidelity plot below" in md
+    assert (rep / "allan_measured_vs_simulated.png").stat().st_size > 1000
+    assert not list(rep.glob("finding_*_coloured_noise.png"))

@@ -68,6 +68,12 @@ def main(args: argparse.Namespace) -> int:
     if spec_path:
         write_spec(spec_path, out, args.log)
         out["extended"]["spec_file"] = str(spec_path)
+    # the result first: a report that fails (a full disk, a plot) must not lose minutes of analysis
+    text = json.dumps(out, indent=1)
+    if args.json == "-":
+        print(text)
+    elif args.json:
+        Path(args.json).write_text(text + "\n", encoding="utf-8")
     if args.report:
         from gyrocal.analysis.report import write_report  # matplotlib only when asked
 
@@ -76,11 +82,6 @@ def main(args: argparse.Namespace) -> int:
         except OSError as err:
             raise GyrocalError(f"--report {args.report}: cannot write the report ({err})") from err
         say(f"report written to {args.report}/report.md")
-    text = json.dumps(out, indent=1)
-    if args.json == "-":
-        print(text)
-    elif args.json:
-        Path(args.json).write_text(text + "\n", encoding="utf-8")
     if not args.json:
         _summary(out)
     say(f"done: {len(out['findings'])} finding(s)")

@@ -124,12 +124,17 @@ def write_report(directory: str | Path, an: Analysis, result: dict, log_path: st
     if not result["findings"]:
         lines += ["Nothing significant beyond gravity-dependent drift and white noise.", ""]
     for i, f in enumerate(result["findings"]):
-        png = f"finding_{i + 1}_{f['cause']}.png"
-        _plot_finding(an, f, d / png)
         lines += [f"### {i + 1}. {f['cause']} (axes {', '.join(f['axes'])})", "",
                   f"- explains {f['explained_fraction']:.1%} of the baseline held-out variance"
                   + (f", p = {f['p_value']:.2g}" if f["p_value"] is not None else " (a noise cause)"),
-                  f"- params: `{f['params']}`", f"- {f['evidence']}", "", f"![{f['cause']}]({png})", ""]
+                  f"- params: `{f['params']}`", f"- {f['evidence']}", ""]
+        if f["cause"] in an.contributions:
+            png = f"finding_{i + 1}_{f['cause']}.png"
+            _plot_finding(an, f, d / png)
+            lines += [f"![{f['cause']}]({png})", ""]
+        else:  # coloured_noise, bias_instability: no fitted effect; their evidence is the Allan curve
+            lines += ["No fitted effect to plot: the evidence is the measured Allan deviation against "
+                      "the simulation without and with it (the fidelity plot below).", ""]
     lines += ["## Gain", "", f"Held-out RMS after a {result['tau_s']:g} s moving average [deg/s]:", "",
               "| axis | baseline | extended | gain | baseline raw | extended raw |",
               "|---|---|---|---|---|---|"]
