@@ -263,8 +263,9 @@ def _allan_terms(prob: Problem, resid: np.ndarray) -> dict:
         curve = allan_curve(resid[:, k], prob.rate_hz)
         out[a] = read_noise_terms(curve).as_dict()
         # N, B, K fitted jointly (a walk rising out of a flicker floor is not read as their sum) at
-        # taus >= 1 s, past a DLPF's colour and lines (on mikoff imu1 y the fit from 0.01 s put B at
-        # 3.5x the curve's minimum): the intensities the daemon's bias-state filter takes
+        # taus >= 1 s, past a DLPF's colour and lines (on mikoff imu1 y the fit from 0.01 s put the
+        # floor 0.664 B above every point of the curve from 1 s on): the intensities the daemon's
+        # bias-state filter takes
         out[a]["joint_fit"] = fit_noise_terms(curve, max_tau_s=top_s, min_tau_s=JOINT_FIT_MIN_TAU_S).as_dict()
     return out
 
