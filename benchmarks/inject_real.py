@@ -197,13 +197,14 @@ def vc_oracle(sel: Selection, axis: str, q_true: float, seed: int) -> dict:
     ``VC_DRAWS`` logs are simulated on the cleaned log's used samples (its time stamps, sessions and
     baseline design): the walk test's null model of that axis (white + colour at their low-frequency
     white level, ``lrtest.fast_part`` of the point model) plus a fresh walk of intensity q_true
-    [(deg/s)^2 / s] per draw. Each draw gets the analysis' statistic (``lrtest.walk_profile``, on the
-    grid without the parabola, so a touch low) and its chi-bar-square p; the power is the share with
+    [(deg/s)^2 / s] per draw. Each draw gets the analysis' statistic (``lrtest.walk_statistic``: the
+    profiled or the held-null profile as ``lrtest.WALK_NULL`` says, on the grid without the parabola,
+    so a touch low) and its chi-bar-square p; the power is the share with
     p < ALPHA. It knows the walk's intensity, not its path: the most a test of the walk could do.
     The held-out confirmation the analysis adds is not in it.
     """
     from gyrocal.analysis.holdout import ALPHA
-    from gyrocal.analysis.lrtest import chibar_p, fast_part, walk_profile
+    from gyrocal.analysis.lrtest import chibar_p, fast_part, walk_statistic
 
     prob, k = sel.prob, "xyz".index(axis)
     null = fast_part(sel.lrs[k].point_model_for([]))
@@ -216,7 +217,7 @@ def vc_oracle(sel: Selection, axis: str, q_true: float, seed: int) -> dict:
     for s0, s1 in zip(np.flatnonzero(start), [*np.flatnonzero(start)[1:], t.size], strict=True):
         walk[s0:s1] = np.cumsum(steps[s0:s1], axis=0)
     ys = walk + rng.normal(0.0, np.sqrt(null.lowfreq_white_var), walk.shape)
-    d, _ = walk_profile(prob, null, prob.base, ys)
+    d, _ = walk_statistic(prob, null, prob.base, ys)
     p = np.array([chibar_p(float(v)) for v in d])
     return {"vc_oracle_power": round(float(np.mean(p < ALPHA)), 4),
             "vc_oracle_d_median": round(float(np.median(d)), 2)}
