@@ -354,6 +354,11 @@ time <= 4 samples) is averaged to white noise at its low-frequency level."""
 WALK_MIN_BLOCKS = 40
 """Fewest blocks per session (median) the profiled test keeps; shorter sessions get shorter blocks."""
 
+WALK_MIN_BLOCK_SAMPLES = 8
+"""Shortest block the profiled test uses (2 x ``FAST_SAMPLES``); with shorter sessions it falls back
+to the held Allan level (``walk_profile``): block means of fewer samples keep the colour's
+correlation, and a level profiled on them is pulled below the low-frequency one."""
+
 
 def block_size(prob: Problem) -> int:
     """Samples per block mean for ``walk_profile_profiled`` (see ``WALK_BLOCK_SAMPLES``)."""
@@ -403,6 +408,9 @@ def walk_profile_profiled(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np
     """
     ys = ys.reshape(ys.shape[0], -1)
     m = block_size(prob)
+    if m < WALK_MIN_BLOCK_SAMPLES:  # too short for block means: the held level (see the constant)
+        d, q = walk_profile(prob, null, x, ys)
+        return d, q, np.full(d.shape, null.lowfreq_white_var)
     t, sess, xb, yb = block_means(prob, x, ys, m)
     n = t.size
     _, rank = gram_solve(xb.T @ xb, xb.T @ yb[:, :1], n, return_rank=True)
