@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/inject_real.py --jsonl rows.jsonl                  # 0.25 / 0.4 / 0.6 sigma
     .venv/bin/python benchmarks/inject_real.py --logs mikoff_imu0,tomi_example_data_tinit_calc
     .venv/bin/python benchmarks/inject_real.py --map --jsonl map.jsonl            # 0.05-1 sigma
+    .venv/bin/python benchmarks/inject_real.py --causes random_walk --walk-null allan --logs mikoff_imu0
     .venv/bin/python benchmarks/inject_real.py --summary rows.jsonl [more.jsonl] --json OUT.json \
         [--plot docs/img/analysis_detection_map_real.png]
 
@@ -145,10 +146,10 @@ def session_span(columns: dict[str, np.ndarray]) -> float:
     return float(np.mean([np.ptp(t[s == k]) for k in np.unique(s)]))
 
 
-def injections(size: float, sigma: float, span: float, variants: int, own: dict[str, list[str]]
-               ) -> Iterable[tuple[str, str, float, dict, int]]:
+def injections(size: float, sigma: float, span: float, variants: int, own: dict[str, list[str]],
+               causes: Iterable[str] = CAUSES) -> Iterable[tuple[str, str, float, dict, int]]:
     """(cause, axis, amplitude, params, variant) for one size: each variant on another axis."""
-    for cause in CAUSES:
+    for cause in causes:
         free = [a for a in "xyz" if a not in own.get(cause, [])] or list("xyz")
         start = {"warmup": 0, "periodic": 1, "random_walk": 2}[cause]
         for v in range(variants):
@@ -197,13 +198,14 @@ def vc_oracle(sel: Selection, axis: str, q_true: float, seed: int) -> dict:
     ``VC_DRAWS`` logs are simulated on the cleaned log's used samples (its time stamps, sessions and
     baseline design): the walk test's null model of that axis (white + colour at their low-frequency
     white level, ``lrtest.fast_part`` of the point model) plus a fresh walk of intensity q_true
-    [(deg/s)^2 / s] per draw. Each draw gets the analysis' statistic (``lrtest.walk_profile``, on the
-    grid without the parabola, so a touch low) and its chi-bar-square p; the power is the share with
+    [(deg/s)^2 / s] per draw. Each draw gets the analysis' statistic (``lrtest.walk_statistic``: the
+    profiled or the held-null profile as ``lrtest.WALK_NULL`` says, on the grid without the parabola,
+    so a touch low) and its chi-bar-square p; the power is the share with
     p < ALPHA. It knows the walk's intensity, not its path: the most a test of the walk could do.
     The held-out confirmation the analysis adds is not in it.
     """
     from gyrocal.analysis.holdout import ALPHA
-    from gyrocal.analysis.lrtest import chibar_p, fast_part, walk_profile
+    from gyrocal.analysis.lrtest import chibar_p, fast_part, walk_statistic
 
     prob, k = sel.prob, "xyz".index(axis)
     null = fast_part(sel.lrs[k].point_model_for([]))
@@ -216,7 +218,7 @@ def vc_oracle(sel: Selection, axis: str, q_true: float, seed: int) -> dict:
     for s0, s1 in zip(np.flatnonzero(start), [*np.flatnonzero(start)[1:], t.size], strict=True):
         walk[s0:s1] = np.cumsum(steps[s0:s1], axis=0)
     ys = walk + rng.normal(0.0, np.sqrt(null.lowfreq_white_var), walk.shape)
-    d, _ = walk_profile(prob, null, prob.base, ys)
+    d, _ = walk_statistic(prob, null, prob.base, ys)
     p = np.array([chibar_p(float(v)) for v in d])
     return {"vc_oracle_power": round(float(np.mean(p < ALPHA)), 4),
             "vc_oracle_d_median": round(float(np.median(d)), 2)}
@@ -234,7 +236,7 @@ def score(found: dict[str, list[str]], own: dict[str, list[str]], cause: str, ax
 
 
 def run_log(name: str, load: Callable[[], LogData], sizes: list[float], variants: int, full: bool,
-            emit: Callable[[dict], None]) -> None:
+            emit: Callable[[dict], None], causes: Iterable[str] = CAUSES) -> None:
     """Clean one log, then inject every cause at every size and variant; emit one row each."""
     from gyrocal.analysis.engine import analyze
     from gyrocal.analysis.hidden import inject
@@ -259,7 +261,7 @@ def run_log(name: str, load: Callable[[], LogData], sizes: list[float], variants
           "after_removal": own, "seconds": round(time.perf_counter() - t0, 1)})
     bins_hz = 3.0 / max(span, 1e-9)
     for size in sizes:
-        for cause, axis, amp, params, v in injections(size, sigma, span, variants, own_by_cause):
+        for cause, axis, amp, params, v in injections(size, sigma, span, variants, own_by_cause, causes):
             t1 = time.perf_counter()
             inj = inject(cols, cause, amp, [axis], seed=7 + v, **params)
             sig = inj[f"w{axis}"] - cols[f"w{axis}"]
@@ -440,6 +442,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--logs", help="comma-separated subset of " + ", ".join(real_logs()))
     ap.add_argument("--skip", help="comma-separated logs to leave out")
     ap.add_argument("--full", action="store_true", help="run the whole analyze on each injected log")
+    ap.add_argument("--causes", help="comma-separated subset of " + ", ".join(CAUSES) + " to inject")
+    ap.add_argument("--walk-null", choices=("profiled", "allan"),
+                    help="the walk test's null level (lrtest.WALK_NULL; default: the module's)")
     ap.add_argument("--summary", nargs="+", help="summarise these JSONL files (no analysis)")
     ap.add_argument("--plot", help="--summary: the detection-map plot (PNG)")
     ap.add_argument("--markdown", action="store_true", help="--summary: print the docs' tables")
@@ -482,6 +487,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.plot:
             plot_map(s, args.plot)
         return 0
+    if args.walk_null:
+        from gyrocal.analysis import lrtest
+
+        lrtest.WALK_NULL = args.walk_null
+    causes = args.causes.split(",") if args.causes else list(CAUSES)
     allowed = real_logs()
     names = args.logs.split(",") if args.logs else list(allowed)
     names = [n for n in names if n not in (args.skip.split(",") if args.skip else [])]
@@ -495,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         for name in names:
-            run_log(name, allowed[name], sizes, args.variants, args.full, emit)
+            run_log(name, allowed[name], sizes, args.variants, args.full, emit, causes)
     finally:
         if fh:
             fh.close()

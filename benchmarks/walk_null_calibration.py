@@ -1,11 +1,14 @@
 """The walk test's null distribution on simulated null logs (issue 12, s12walk).
 
     .venv/bin/python benchmarks/walk_null_calibration.py --kinds white,coloured,quantised --seeds 34000:34060
+    .venv/bin/python benchmarks/walk_null_calibration.py --walk-null allan  # the held level (before s13white)
 
 Per null log and axis, the variance-component likelihood ratio of ``lrtest.walk_lr`` on the
 baseline: the share of axes with q_hat = 0 (the boundary mass; 0.5 under the 50:50 chi-bar-square
 null), how many p-values fall below 0.05, 0.01 and ALPHA, and the largest D (the critical D at
-ALPHA is about 10.6). The kinds are ``hidden.add_background``'s.
+ALPHA is about 10.6). The kinds are ``hidden.add_background``'s. ``--walk-null`` picks the null's
+level: profiled with the walk on block means (``lrtest.WALK_NULL = "profiled"``, the default) or the
+Allan fit's, held ("allan").
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import sys
 
 import numpy as np
 
+from gyrocal.analysis import lrtest
 from gyrocal.analysis.candidates import all_candidates
 from gyrocal.analysis.engine import problem_of
 from gyrocal.analysis.hidden import add_background, generate
@@ -45,7 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", default="white,coloured,quantised")
     ap.add_argument("--seeds", default="34000:34060", help="first:last (exclusive)")
     ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("--walk-null", choices=("profiled", "allan"),
+                    help="the walk test's null level (lrtest.WALK_NULL; default: the module's)")
     args = ap.parse_args(argv)
+    if args.walk_null:
+        lrtest.WALK_NULL = args.walk_null
     a, b = (int(s) for s in args.seeds.split(":"))
     out = []
     for kind in args.kinds.split(","):

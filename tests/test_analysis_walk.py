@@ -15,7 +15,15 @@ from gyrocal.analysis.candidates import all_candidates
 from gyrocal.analysis.causes import select_axis
 from gyrocal.analysis.hidden import generate, inject
 from gyrocal.analysis.holdout import ALPHA
-from gyrocal.analysis.lrtest import build_axis_lr, chibar_p, fast_part, walk_lr, walk_profile
+from gyrocal.analysis.lrtest import (
+    build_axis_lr,
+    chibar_p,
+    fast_part,
+    scaled,
+    walk_lr,
+    walk_profile,
+    walk_profile_profiled,
+)
 from gyrocal.analysis.segments import usable_samples
 from gyrocal.analysis.timestamps import retime
 from gyrocal.model.terms import derived_columns
@@ -74,3 +82,53 @@ def test_walk_named_on_a_walk_and_not_on_white_noise() -> None:
     assert w.p_value < ALPHA and w.q_hat > 0
     res = select_axis(prob, 1, cands, 1.0, lr=lr)
     assert [s.cause for s in res.steps] == ["random_walk"]
+
+
+def _coloured(prob: Problem, s2: float, n: int, seed: int, tau_samples: float = 2.0) -> np.ndarray:
+    """n columns of first-order Gauss-Markov noise (correlation time ``tau_samples``) whose
+    low-frequency white level is s2 [(deg/s)^2 per sample]."""
+    rng = np.random.default_rng(seed)
+    phi = np.exp(-1.0 / tau_samples)
+    v = s2 * (1 - phi) / (1 + phi)  # the process variance whose low-frequency level is s2
+    e = rng.normal(0, np.sqrt(v * (1 - phi**2)), (prob.n, n))
+    out = np.empty_like(e)
+    out[0] = rng.normal(0, np.sqrt(v), n)
+    for i in range(1, prob.n):
+        out[i] = phi * out[i - 1] + e[i]
+    return out
+
+
+def test_profiled_null_level_is_estimated_with_the_walk() -> None:
+    """The profiled test (``walk_profile_profiled``, issue 12, s13white): its D does not depend on the
+    held null's level (a 20 % high level, as the Allan fit of a walked log gives, costs the held test
+    D, not this one); on coloured noise (2-sample Gauss-Markov: per-sample variance a third of its
+    low-frequency level) it keeps the boundary null and estimates the low-frequency level; a walk
+    is seen."""
+    cols, _ = generate(33000, causes=[])
+    prob = _problem(cols)
+    lr = build_axis_lr(prob, all_candidates(prob), 0)
+    null = fast_part(lr.point_model_for([]))
+    s2 = null.lowfreq_white_var
+    span = 180.0
+    q = 300.0 * s2 / (prob.rate_hz * span**2)
+    walked = _walk_draws(prob, q, s2, 20, 3)
+    high = scaled(null, 1.2 * s2)
+    d_p, _, _ = walk_profile_profiled(prob, null, prob.base, walked)
+    d_ph, _, _ = walk_profile_profiled(prob, high, prob.base, walked)
+    np.testing.assert_allclose(d_ph, d_p, rtol=1e-6, atol=1e-6)
+    d_h, _ = walk_profile(prob, null, prob.base, walked)
+    d_hh, _ = walk_profile(prob, high, prob.base, walked)
+    assert np.median(d_hh) < 0.9 * np.median(d_h)  # the held null loses D to a high level
+    # coloured null draws: boundary mass, tail, and the level is the low-frequency one
+    d0, q0, s0 = walk_profile_profiled(prob, null, prob.base, _coloured(prob, s2, 200, 4))
+    p0 = np.array([chibar_p(float(d)) for d in d0])
+    assert 0.35 <= np.mean(q0 == 0) <= 0.8
+    assert 0.01 <= np.mean(p0 < 0.1) <= 0.2
+    assert np.mean(p0 < 0.01) <= 0.04
+    assert 0.85 < np.median(s0) / s2 < 1.1
+    # a walk on the coloured noise is seen
+    d1, q1, _ = walk_profile_profiled(prob, null, prob.base, walked - _walk_draws(prob, 0.0, s2, 20, 3)
+                                      + _coloured(prob, s2, 20, 5))
+    p1 = np.array([chibar_p(float(d)) for d in d1])
+    assert np.mean(p1 < ALPHA) >= 0.8
+    assert 0.2 < np.median(q1[q1 > 0]) / q < 5.0

@@ -344,6 +344,126 @@ def walk_profile(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
     return np.where(pos, d, 0.0), np.where(pos, q_hat, 0.0)
 
 
+WALK_NULL = "profiled"
+"""How the walk test's null level is set: "profiled" (``walk_profile_profiled``: the low-frequency
+white level re-estimated by REML with the walk, on block means) or "allan" (``walk_profile``: the
+Allan fit's white + colour, held)."""
+WALK_BLOCK_SAMPLES = 32
+"""Samples per block mean of the profiled walk test: 8 x ``FAST_SAMPLES``, so the colour (correlation
+time <= 4 samples) is averaged to white noise at its low-frequency level."""
+WALK_MIN_BLOCKS = 40
+"""Fewest blocks per session (median) the profiled test keeps; shorter sessions get shorter blocks."""
+
+WALK_MIN_BLOCK_SAMPLES = 8
+"""Shortest block the profiled test uses (2 x ``FAST_SAMPLES``); with shorter sessions it falls back
+to the held Allan level (``walk_profile``): block means of fewer samples keep the colour's
+correlation, and a level profiled on them is pulled below the low-frequency one."""
+
+
+def block_size(prob: Problem) -> int:
+    """Samples per block mean for ``walk_profile_profiled`` (see ``WALK_BLOCK_SAMPLES``)."""
+    counts = np.bincount(np.unique(prob.usable.session, return_inverse=True)[1])
+    return int(max(1, min(WALK_BLOCK_SAMPLES, int(np.median(counts)) // WALK_MIN_BLOCKS)))
+
+
+def block_means(prob: Problem, x: np.ndarray, ys: np.ndarray, m: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t [s], session, x, ys) averaged over consecutive blocks of m used samples within each session.
+
+    Each session's rows are cut into whole blocks from its start (a last partial block is dropped:
+    its mean would have another variance). Why: the GLS takes the colour as white noise at its
+    low-frequency level, right for slow regressors but not for the per-sample scale; a scale
+    profiled by REML on the samples is pulled to the per-sample variance (on mikoff imu0 x 0.42 of
+    the low-frequency level), and the walk then takes the difference (D ~ 500 on every path). The
+    block means of the colour are white at the low-frequency level / m.
+    """
+    sess = prob.usable.session
+    t = prob.cols["t"]
+    rows = []
+    for s in np.unique(sess):
+        idx = np.flatnonzero(sess == s)
+        rows.append(idx[: (idx.size // m) * m])
+    idx = np.concatenate(rows)
+
+    def mean(a: np.ndarray) -> np.ndarray:
+        a = a[idx]
+        return np.add.reduceat(a, np.arange(0, a.shape[0], m), axis=0) / m
+
+    return mean(t), sess[idx][::m], mean(x), mean(ys)
+
+
+def walk_profile_profiled(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """D (K,), q_hat (K,) [(deg/s)^2/s] and the REML low-frequency white level s2_hat (K,)
+    [(deg/s)^2 per sample] of a walk against none, per column, with the level profiled under BOTH
+    hypotheses.
+
+    Why (issue 12, s13white): the Allan fit of a log with a walk gives part of the walk's power to
+    the colour members, so the held null's level is 11-20 % high (mikoff imu0 x) and D drops. Here
+    the level is a free scale: on block means (``block_means``) V = s (I + lam W), W the walk's
+    covariance per unit intensity; for each lam the REML scale is s = Q(lam) / (n - r), and the
+    profile l(lam) = -1/2 [(n - r) log Q(lam) + log det(I + lam W) + log pdet X'V^-1X] (+ const);
+    D = 2 (max l(lam) - l(0)). lam runs over ``walk_grid`` of the Allan null (in units of its
+    level), then a parabola for a single column. The null's colour sets only the block size.
+    """
+    ys = ys.reshape(ys.shape[0], -1)
+    m = block_size(prob)
+    if m < WALK_MIN_BLOCK_SAMPLES:  # too short for block means: the held level (see the constant)
+        d, q = walk_profile(prob, null, x, ys)
+        return d, q, np.full(d.shape, null.lowfreq_white_var)
+    t, sess, xb, yb = block_means(prob, x, ys, m)
+    n = t.size
+    _, rank = gram_solve(xb.T @ xb, xb.T @ yb[:, :1], n, return_rank=True)
+    dof = max(n - rank, 1)
+    ref = null.lowfreq_white_var / m  # block-mean variance of the Allan null [(deg/s)^2]
+    unit = NoiseModel(null.rate_hz / m, ref, [], 0.0)
+
+    def ll(q: float) -> tuple[np.ndarray, np.ndarray]:
+        gls = StateSpaceGLS(with_walk(unit, q), t, sess)
+        qf, logdet = _reml_terms(gls, xb, yb, n, rank)
+        qf = np.maximum(qf, 1e-300)
+        return -0.5 * (dof * np.log(qf) + logdet), qf
+
+    l0, q0f = ll(0.0)
+    grid = walk_grid(prob, null)
+    evals = [ll(q) for q in grid]
+    ls = np.array([e[0] for e in evals])  # (G, K)
+    qs = np.array([e[1] for e in evals])
+    best = np.argmax(ls, axis=0)
+    cols = np.arange(ls.shape[1])
+    d = 2.0 * (ls[best, cols] - l0)
+    q_hat = grid[best].astype(float)
+    scale = qs[best, cols] / dof  # the REML scale s at the best point (dimensionless)
+    j = int(best[0])
+    if ys.shape[1] == 1 and 0 < j < len(grid) - 1:
+        a, b, c = ls[j - 1, 0], ls[j, 0], ls[j + 1, 0]
+        den = a - 2 * b + c
+        if den < 0:
+            qv = float(q_hat[0] * 10.0 ** (0.5 * (a - c) / den * WALK_GRID_STEP_DEC))
+            lv, qfv = ll(qv)
+            if 2 * (lv[0] - l0[0]) > d[0]:
+                d[0], q_hat[0], scale[0] = 2 * (lv[0] - l0[0]), qv, qfv[0] / dof
+    pos = d > 0
+    scale = np.where(pos, scale, q0f / dof)
+    # the walk's intensity is relative to the reference level: V = s (ref I + q W) -> q s
+    return np.where(pos, d, 0.0), np.where(pos, q_hat * scale, 0.0), scale * null.lowfreq_white_var
+
+
+def scaled(model: NoiseModel, s2: float) -> NoiseModel:
+    """``model`` (white + colour) with every variance scaled so its low-frequency level is s2."""
+    c = s2 / max(model.lowfreq_white_var, 1e-300)
+    return NoiseModel(model.rate_hz, model.white_var * c, [(t, v * c) for t, v in model.gm], model.walk_q * c)
+
+
+def walk_statistic(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """D (K,) and q_hat (K,) of the walk test as ``WALK_NULL`` sets it (the oracle's and tests' entry)."""
+    if WALK_NULL == "profiled":
+        d, q, _ = walk_profile_profiled(prob, null, x, ys)
+        return d, q
+    return walk_profile(prob, null, x, ys)
+
+
 def chibar_p(d: float) -> float:
     """p-value of a variance component on its boundary: the 50:50 mixture of 0 and chi-square(1)."""
     return float(0.5 * stats.chi2.sf(d, 1)) if d > 0 else 1.0
@@ -364,6 +484,11 @@ def walk_lr(lr: AxisLR, chosen: list[str]) -> WalkLR:
     if key not in lr.walks:
         null = fast_part(lr.point_model_for(chosen))
         x = lr.design(chosen)
-        d, q = walk_profile(lr.prob, null, x, lr.prob.y[:, lr.axis])
+        y = lr.prob.y[:, lr.axis]
+        if WALK_NULL == "profiled":
+            d, q, s2 = walk_profile_profiled(lr.prob, null, x, y)
+            null = scaled(null, float(s2[0]))
+        else:
+            d, q = walk_profile(lr.prob, null, x, y)
         lr.walks[key] = WalkLR(float(q[0]), float(d[0]), chibar_p(float(d[0])), null)
     return lr.walks[key]
