@@ -319,29 +319,45 @@ def walk_profile(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np.ndarray
     _, rank = gram_solve(x.T @ x, x.T @ ys[:, :1], n, return_rank=True)
     t, sess = prob.cols["t"], prob.usable.session
 
-    def ll(q: float) -> np.ndarray:
+    def ll(q: float) -> tuple[np.ndarray, np.ndarray]:
         gls = StateSpaceGLS(with_walk(null, q), t, sess)
         qf, logdet = _reml_terms(gls, x, ys, n, rank)
-        return -0.5 * (qf + logdet)
+        return -0.5 * (qf + logdet), qf
 
-    l0 = ll(0.0)
-    grid = walk_grid(prob, null)
-    ls = np.array([ll(q) for q in grid])  # (G, K)
+    d, q_hat, _, _ = _grid_max(ll, walk_grid(prob, null))
+    return d, q_hat
+
+
+def _grid_max(ll, grid: np.ndarray  # noqa: ANN001 (ll: q -> (l (K,), aux (K,)))
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Maximise a per-column log-likelihood ll(q) over the walk intensity q on ``grid``, the shared
+    search of ``walk_profile`` and ``walk_profile_profiled``.
+
+    ll returns (l (K,), aux (K,)), aux a by-product the caller needs at the argmax (the REML
+    quadratic form). A single column's best grid point is refined by a parabola through it and its
+    neighbours in log q (one more evaluation); several columns (simulated draws) keep the grid.
+    Returns D = 2 (l(q_hat) - l(0)) and q_hat (0 where D <= 0), aux at q_hat and aux at q = 0.
+    """
+    l0, aux0 = ll(0.0)
+    evals = [ll(q) for q in grid]
+    ls = np.array([e[0] for e in evals])  # (G, K)
+    auxs = np.array([e[1] for e in evals])
     best = np.argmax(ls, axis=0)
-    d = 2.0 * (ls[best, np.arange(ls.shape[1])] - l0)
-    q_hat = grid[best]
+    cols = np.arange(ls.shape[1])
+    d = 2.0 * (ls[best, cols] - l0)
+    q_hat = grid[best].astype(float)
+    aux = auxs[best, cols]
     j = int(best[0])
-    # one column: a parabola through the best point and its neighbours, in log q (draws keep the grid)
-    if ys.shape[1] == 1 and 0 < j < len(grid) - 1:
+    if ls.shape[1] == 1 and 0 < j < len(grid) - 1:
         a, b, c = ls[j - 1, 0], ls[j, 0], ls[j + 1, 0]
         den = a - 2 * b + c
         if den < 0:
             qv = float(q_hat[0] * 10.0 ** (0.5 * (a - c) / den * WALK_GRID_STEP_DEC))
-            lv = float(ll(qv)[0])
-            if 2 * (lv - l0[0]) > d[0]:
-                d[0], q_hat[0] = 2 * (lv - l0[0]), qv
+            lv, auxv = ll(qv)
+            if 2 * (lv[0] - l0[0]) > d[0]:
+                d[0], q_hat[0], aux[0] = 2 * (lv[0] - l0[0]), qv, auxv[0]
     pos = d > 0
-    return np.where(pos, d, 0.0), np.where(pos, q_hat, 0.0)
+    return np.where(pos, d, 0.0), np.where(pos, q_hat, 0.0), aux, aux0
 
 
 WALK_NULL = "profiled"
@@ -424,29 +440,10 @@ def walk_profile_profiled(prob: Problem, null: NoiseModel, x: np.ndarray, ys: np
         qf = np.maximum(qf, 1e-300)
         return -0.5 * (dof * np.log(qf) + logdet), qf
 
-    l0, q0f = ll(0.0)
-    grid = walk_grid(prob, null)
-    evals = [ll(q) for q in grid]
-    ls = np.array([e[0] for e in evals])  # (G, K)
-    qs = np.array([e[1] for e in evals])
-    best = np.argmax(ls, axis=0)
-    cols = np.arange(ls.shape[1])
-    d = 2.0 * (ls[best, cols] - l0)
-    q_hat = grid[best].astype(float)
-    scale = qs[best, cols] / dof  # the REML scale s at the best point (dimensionless)
-    j = int(best[0])
-    if ys.shape[1] == 1 and 0 < j < len(grid) - 1:
-        a, b, c = ls[j - 1, 0], ls[j, 0], ls[j + 1, 0]
-        den = a - 2 * b + c
-        if den < 0:
-            qv = float(q_hat[0] * 10.0 ** (0.5 * (a - c) / den * WALK_GRID_STEP_DEC))
-            lv, qfv = ll(qv)
-            if 2 * (lv[0] - l0[0]) > d[0]:
-                d[0], q_hat[0], scale[0] = 2 * (lv[0] - l0[0]), qv, qfv[0] / dof
-    pos = d > 0
-    scale = np.where(pos, scale, q0f / dof)
+    d, q_hat, qf, qf0 = _grid_max(ll, walk_grid(prob, null))
+    scale = np.where(d > 0, qf, qf0) / dof  # the REML scale s (dimensionless) at q_hat, or at 0
     # the walk's intensity is relative to the reference level: V = s (ref I + q W) -> q s
-    return np.where(pos, d, 0.0), np.where(pos, q_hat * scale, 0.0), scale * null.lowfreq_white_var
+    return d, q_hat * scale, scale * null.lowfreq_white_var
 
 
 def scaled(model: NoiseModel, s2: float) -> NoiseModel:
