@@ -17,7 +17,9 @@
 - Staged calibration: a warm-started session (a stored set) first pushes a bias-only set, from its
   first still second, validated on the blocks seen; the full set follows once the data supports it.
 - VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
-  ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged.
+  ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged. On a unit
+  whose bias wanders (a ``kf`` spec), a first set passes on a significant paired gain instead
+  (``WANDER_GAIN_Z``): the wander is in every block and no set removes it (refine.py's floor).
 - PUSHING: push.py's transaction (write, matching ack, read back, retries).
 - APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows. The
   residual is raw - C_applied @ phi over the monitor blocks, so blocks of samples the unit sent
@@ -127,6 +129,10 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
 DPH = 3600.0
 SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
 """Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
+WANDER_GAIN_Z = 3.0
+"""A first set on a unit whose bias wanders passes validation when its held-out gain is this many
+standard errors, paired per block (one-sided p about 0.001 for independent blocks; the blocks of one
+rest are alike, so it is kept strict)."""
 PREDICTED_KEYS = ("left", "expected", "bound", "left_poses", "left_sphere", "removes")
 """The per-axis figures [deg/s] of a prediction (learner.py), shown and recorded in deg/h."""
 
@@ -343,11 +349,17 @@ class Session(RecoveryMixin):
         settled = refine.settled(self._trate.value, self._peak_trate)
         edge = settled and self._edge_costs(held_range, cut)
         wide = refine.widened(held_range, self.temp_seen, settled, edge)
-        g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
+        floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
+        g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
+                                            self.cfg.validation["min_improvement"])
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
                f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
                "the set removes")
+        if floor is not None:
+            why += (f" (or {refine.WANDER_LEFT_SHARE:g} of the bias wander's {_dph(floor)} deg/h over "
+                    f"{self.cfg.push['wander_horizon_s']:g} s, the push cutting the total by "
+                    f"{self.cfg.validation['min_improvement']:.0%})")
         if held_left is not None:
             why += (f" on some axis (or the range seen {_range(self.temp_seen)} widen the held set's "
                     f"{_range(held_range)} degC), leaving no axis worse than the held set's "
@@ -535,8 +547,8 @@ class Session(RecoveryMixin):
         self._projection = proj = project(self.names, self.learner.coefficients, held, poses)
         coeffs = proj.embedded_dps
         blocks = self.holdout if blocks is None else blocks
-        rms_old = blocks.rms_with(self._applied_coeffs()) if self._applied_coeffs() is not None \
-            else blocks.rms_out()
+        applied = self._applied_coeffs()
+        rms_old = blocks.rms_with(applied) if applied is not None else blocks.rms_out()
         rms_new = blocks.rms_with(coeffs)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
@@ -552,6 +564,17 @@ class Session(RecoveryMixin):
         # together or on one, or widens the range: a gain in TMIN..TMAX the held-out residual cannot
         # show (the link reconstructs the unit's output with the held set unclamped)
         enough = new2 <= need * old2
+        # a first set on a unit whose bias wanders (a kf spec with a walk or a flicker floor): the
+        # wander sits in every held-out block beside the noise and no set removes it, so the totals
+        # cannot fall by min_improvement however good the set. It passes when its gain is significant,
+        # paired per block (blocks.paired_gain_z); the gate has already asked that the predicted total,
+        # with the wander's floor, fall by min_improvement (refine.gate)
+        if not enough and stage == "full" and not refining and self.validated_rms is None \
+                and g is not None and g.floor is not None:
+            z = blocks.paired_gain_z(applied, coeffs)
+            self.last_validation["wander"] = {"floor_dps": dict(zip("xyz", g.floor.tolist(), strict=True)),
+                                              "gain_z": round(z, 2), "need_z": WANDER_GAIN_Z}
+            enough = new2 < old2 and z >= WANDER_GAIN_Z
         if refining and g is not None:
             one_axis = bool(np.any(rms_new <= (1.0 - self.cfg.validation["min_improvement"]) * rms_old))
             enough = enough or one_axis or g.widened
@@ -566,6 +589,10 @@ class Session(RecoveryMixin):
         elif not enough:
             why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
                    f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
+            if "wander" in self.last_validation:
+                why = why.replace("; not pushing", f" (nor significantly, beside the bias wander: "
+                                  f"{self.last_validation['wander']['gain_z']:.1f} standard errors of "
+                                  f"{WANDER_GAIN_Z:g}); not pushing")
         else:
             why = ""
         if why:
