@@ -24,6 +24,7 @@ class Block:
     phi: np.ndarray
     n: int
     holdout: bool
+    t_s: float = float("nan")  # the unit's time stamp [s] of the batch that closed it (set by the session)
 
 
 class BlockAccumulator:
@@ -111,6 +112,12 @@ class BlockWindow:
 
     def __len__(self) -> int:
         return len(self.blocks)
+
+    def since(self, t_s: float) -> BlockWindow:
+        """The blocks closed at or after ``t_s`` [s] (the unit's clock), oldest first, as a new window."""
+        out = BlockWindow(len(self.blocks))
+        out.add([b for b in self.blocks if b.t_s >= t_s])
+        return out
 
     def rms_out(self) -> np.ndarray:
         """RMS over blocks of the unit's output mean [deg/s], per axis: the drift left in the output."""

@@ -203,6 +203,7 @@ class Session(RecoveryMixin):
         self._next_validation_at = 0
         self._validated_at = 0  # learner samples at the last validation
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
+        self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -278,6 +279,10 @@ class Session(RecoveryMixin):
         phi = block_terms(self.spec, cols)
         raw = out + self._compensation(samples["seq"], cols, phi)
         blocks, train = self.acc.feed(raw, out, phi, still)
+        if len(samples["t"]):
+            self._t_last = float(samples["t"][-1])
+        for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
+            b.t_s = self._t_last
         self.still_samples += int(still.sum())
         if self._has_temp and still.any():
             t = samples["temp"][still]
@@ -569,12 +574,21 @@ class Session(RecoveryMixin):
         # cannot fall by min_improvement however good the set. It passes when its gain is significant,
         # paired per block (blocks.paired_gain_z); the gate has already asked that the predicted total,
         # with the wander's floor, fall by min_improvement (refine.gate)
+        # on the held-out blocks of the last push.wander_horizon_s: the set holds the bias as it is
+        # now, and older blocks had another (all blocks while fewer than min_holdout_blocks are recent)
         if not enough and stage == "full" and not refining and self.validated_rms is None \
                 and g is not None and g.floor is not None:
-            z = blocks.paired_gain_z(applied, coeffs)
-            self.last_validation["wander"] = {"floor_dps": dict(zip("xyz", g.floor.tolist(), strict=True)),
-                                              "gain_z": round(z, 2), "need_z": WANDER_GAIN_Z}
-            enough = new2 < old2 and z >= WANDER_GAIN_Z
+            recent = blocks.since(self._t_last - float(self.cfg.push["wander_horizon_s"]))
+            judged = recent if len(recent) >= self.cfg.validation["min_holdout_blocks"] else blocks
+            r_old = judged.rms_with(applied) if applied is not None else judged.rms_out()
+            r_new = judged.rms_with(coeffs)
+            z = judged.paired_gain_z(applied, coeffs)
+            self.last_validation["wander"] = {
+                "floor_dps": dict(zip("xyz", g.floor.tolist(), strict=True)), "blocks": len(judged),
+                "rms_current_dps": dict(zip("xyz", r_old.tolist(), strict=True)),
+                "rms_new_dps": dict(zip("xyz", r_new.tolist(), strict=True)),
+                "gain_z": round(z, 2), "need_z": WANDER_GAIN_Z}
+            enough = float(np.sum(r_new**2)) < float(np.sum(r_old**2)) and z >= WANDER_GAIN_Z
         if refining and g is not None:
             one_axis = bool(np.any(rms_new <= (1.0 - self.cfg.validation["min_improvement"]) * rms_old))
             enough = enough or one_axis or g.widened
