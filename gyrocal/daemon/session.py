@@ -103,6 +103,13 @@ class AppliedSet:
     names: tuple[str, ...]
     coeffs_dps: np.ndarray  # (3, P) deg/s per term unit
 
+    def uses(self, atom: str) -> bool:
+        """Whether a term with a non-zero coefficient needs ``atom`` (``dtemp``, ``temp``, ``t_on``)."""
+        if not self.names:
+            return False
+        terms = TermSpec.parse(self.names).terms
+        return any(atom in term.atoms and bool(np.any(self.coeffs_dps[:, k])) for k, term in enumerate(terms))
+
     def compensation(self, cols: dict[str, np.ndarray], phi: np.ndarray | None = None) -> np.ndarray:
         """What the unit subtracts from its output, (N, 3) [deg/s]; ``phi``: these cols' terms, if known."""
         if not self.names or not np.any(self.coeffs_dps):
@@ -204,6 +211,7 @@ class Session(RecoveryMixin):
         self._validated_at = 0  # learner samples at the last validation
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
+        self.inexact_samples = 0  # still samples set aside: the unit's dtemp not yet known exactly
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -260,15 +268,26 @@ class Session(RecoveryMixin):
     def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
         """Learn from decided samples (SAMPLE_DTYPE) with their still flags."""
         self.samples += samples.size
-        if samples.size == 0 or self.applied is None:
+        if samples.size == 0:
+            return
+        # dtemp follows the unit's rule from the session's first sample, also while the unit's set is
+        # still being read: a copy started later is not the unit's for WINDOW seconds (TempRate.exact)
+        dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"])
+        if self.applied is None:
             return
         if self._t0_unit is None:
             self._t0_unit = float(samples["t"][0])
         cols = {
             "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
-            "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
-            "dtemp": self._trate.update(samples["t"], samples["temp"]),
+            "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit, "dtemp": dtemp,
         }
+        if not exact.all() and (self.applied.uses("dtemp") or (self._switch is not None
+                                                                and self._switch[0].uses("dtemp"))):
+            # the unit's compensation cannot be rebuilt exactly for these samples: neither learnt from
+            # nor held out (a warm-up at 0.5 degC/s and a 0.02 deg/s per degC/s coefficient made a
+            # first push cut an independent fibre unit's drift 8.4-19x instead of 14-40x)
+            still = still & exact
+            self.inexact_samples += int((~exact).sum())
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
@@ -820,7 +839,7 @@ class Session(RecoveryMixin):
             "applied": None if self.applied is None else {
                 "version": self.applied.version, "terms_id": self.applied.terms_id},
             "samples": self.samples, "still_samples": self.still_samples,
-            "trained_samples": self.learner.samples,
+            "trained_samples": self.learner.samples, "dtemp_inexact_samples": self.inexact_samples,
             "terms": self.names,
             "coefficients_dps": finite_or_none(self.learner.coefficients),
             "uncertainty_dps": finite_or_none(self.learner.uncertainty),
