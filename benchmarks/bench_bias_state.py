@@ -218,7 +218,10 @@ def run_daemon(method: str, model_case: str, seed: int, after_s: float, work: Pa
         except subprocess.TimeoutExpired:
             proc.kill()
         log.close()
-    d = np.genfromtxt(work / "unit.truth.csv", delimiter=",", names=True, comments="#")
+    truth_csv = work / "unit.truth.csv"
+    with truth_csv.open(encoding="utf-8") as f:  # "# key: value" lines, then the header row
+        skip = sum(1 for _ in iter(lambda: f.readline().startswith("#"), False))
+    d = np.genfromtxt(truth_csv, delimiter=",", names=True, skip_header=skip)
     comp = np.column_stack([d[f"comp_w{a}"] for a in "xyz"])
     drift = np.column_stack([d[f"drift_w{a}"] for a in "xyz"])
     changed = np.flatnonzero(np.any(comp != comp[0], axis=1))
