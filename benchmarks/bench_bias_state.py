@@ -193,7 +193,6 @@ def run_daemon(method: str, model_case: str, seed: int, after_s: float, work: Pa
            # this unit's noise (0.05 deg/s per sample) needs ~100,000 rest samples for 1e-3 deg/s
            "estimator": {"method": method, "terms": terms,
                          "convergence": {"max_change_dps": 5e-3, "max_sigma_dps": 2e-3, "window": 5000}},
-           "still": {"gyro_std_dps": 4 * NOISE_DPS},   # the detector's default 0.05 is this unit's noise
            "state_dir": str(work / "state"), "control_socket": str(work / "control.sock")}
     (work / "config.yaml").write_text(yaml.safe_dump(cfg), encoding="utf-8")
     cli = [sys.executable, "-m", "gyrocal.cli"]
@@ -219,22 +218,31 @@ def run_daemon(method: str, model_case: str, seed: int, after_s: float, work: Pa
         except subprocess.TimeoutExpired:
             proc.kill()
         log.close()
-    if pushed_at is None:
-        return {"pushed": False, "wall_s": time.monotonic() - t0}
-    d = np.genfromtxt(work / "unit.truth.csv", delimiter=",", names=True, comments="#")
+    truth_csv = work / "unit.truth.csv"
+    with truth_csv.open(encoding="utf-8") as f:  # "# key: value" lines, then the header row
+        skip = sum(1 for _ in iter(lambda: f.readline().startswith("#"), False))
+    d = np.genfromtxt(truth_csv, delimiter=",", names=True, skip_header=skip)
     comp = np.column_stack([d[f"comp_w{a}"] for a in "xyz"])
+    drift = np.column_stack([d[f"drift_w{a}"] for a in "xyz"])
     changed = np.flatnonzero(np.any(comp != comp[0], axis=1))
-    if changed.size == 0:
-        return {"pushed": True, "applied": False}
-    after = np.arange(d.size) >= changed[0]
-    st_ = after & (d["still"] > 0.5)
-    left = (np.column_stack([d[f"drift_w{a}"] for a in "xyz"]) - comp)[st_]
-    dwell = segment_ids(st_)[st_]
-    n = np.bincount(dwell)
-    mean = np.column_stack([np.bincount(dwell, weights=left[:, k]) / n for k in range(3)])
-    return {"pushed": True, "applied": True, "push_t_s": float(d["t"][changed[0]]),
-            "after_s": float(d["t"][-1] - d["t"][changed[0]]),
-            "after_dph": float(np.sqrt(np.mean(mean**2)) * 3600)}
+
+    def dwell_rms_dph(mask: np.ndarray, left: np.ndarray) -> float:
+        st_ = mask & (d["still"] > 0.5)
+        dwell = segment_ids(st_)[st_]
+        n = np.bincount(dwell)
+        mean = np.column_stack([np.bincount(dwell, weights=left[st_, k]) / n for k in range(3)])
+        return float(np.sqrt(np.mean(mean**2)) * 3600)
+
+    # the window judged: after the push, or (none) the run's last after_s, as the unit kept it
+    start = int(changed[0]) if changed.size else int(np.searchsorted(d["t"], d["t"][-1] - after_s))
+    window = np.arange(d.size) >= start
+    row = {"pushed": pushed_at is not None, "applied": bool(changed.size), "wall_s": time.monotonic() - t0,
+           "window_t_s": [float(d["t"][start]), float(d["t"][-1])],
+           "after_dph": dwell_rms_dph(window, drift - comp),          # what the unit kept, compensated
+           "uncompensated_dph": dwell_rms_dph(window, drift)}          # the same rests, no set at all
+    if changed.size:
+        row["push_t_s"] = float(d["t"][changed[0]])
+    return row
 
 
 def paired_ratio(method: list[float], rls: list[float]) -> dict | None:

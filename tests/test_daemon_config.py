@@ -130,6 +130,7 @@ _BAD_VALUES: dict[str, list[object]] = {
     "link.can_node_id": [-1, 16],
     "push.target_drift_dph": [0, -1],
     "push.min_cut": [1, 0.5],
+    "push.wander_horizon_s": [0, -600],
 }
 
 

@@ -237,3 +237,18 @@ def test_the_next_switch_on_widens_the_stored_range(tmp_path: Path) -> None:
     before, after = _shape_error(h, recs[-1].coefficients_dps, lo, hi)
     assert np.all(after[1:] * 10 <= before[1:]), (before * DPH, after * DPH)
     assert after[0] * DPH < 10.0, after * DPH
+
+
+def test_a_wandering_bias_lets_a_first_set_through_when_waiting_cannot_buy_much() -> None:
+    """The floor rule (refine module docstring), per axis in deg/h: the bench's MEMS unit left 6 deg/h
+    predicted after 25 minutes against 14-22 removed, so 1/20 never came; its wander leaves ~12."""
+    dph = 1 / 3600.0
+    left, removes, floor = np.full(3, 6 * dph), np.array([14.0, 21.6, 13.1]) * dph, np.full(3, 12 * dph)
+    assert not refine.gate(left, removes, 0.2 * dph, 20.0).ok
+    assert refine.gate(left, removes, 0.2 * dph, 20.0, floor=floor).ok
+    # still learning: the estimate's own error is more than half the floor
+    assert not refine.gate(left * 1.1, removes, 0.2 * dph, 20.0, floor=floor).ok
+    # not worth a push: what the set removes is small beside the wander (total 13.4 vs 14.4 deg/h)
+    assert not refine.gate(left, np.full(3, 6 * dph), 0.2 * dph, 20.0, floor=floor).ok
+    # one axis short of it holds the first set back, as in the rule without a floor
+    assert not refine.gate(left, np.array([14.0, 21.6, 5.0]) * dph, 0.2 * dph, 20.0, floor=floor).ok

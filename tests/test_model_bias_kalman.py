@@ -184,3 +184,29 @@ def test_daemon_config_kf_loads_the_intensities_from_the_terms_file(tmp_path) ->
                                              encoding="utf-8")
     with pytest.raises(ConfigError, match=r"out.terms.yaml: field 'random_walk.dps_per_sqrt_s'"):
         load_config(cfg_path)
+
+
+@pytest.mark.parametrize("horizon_s", [0.0, 300.0])
+def test_the_wander_left_after_a_push_matches_simulated_paths(horizon_s: float) -> None:
+    """``wander_dps`` is the push gate's floor: the RMS over the next H seconds of the bias's move away
+    from what is pushed now. Checked against 4000 simulated walk + Gauss-Markov paths (exact
+    discretisation), the pushed value being the walk's and the GM's part as the filter weighs it."""
+    q, s, T, H, dt = 1e-4, 3e-3, 150.0, 600.0, 1.0
+    bias = BiasModel(random_walk_dps_per_sqrt_s=np.full(3, q), gm_sigma_dps=np.full(3, s),
+                     gm_tau_s=np.full(3, T))
+    kf = BiasKalman(SEED000_TERMS, bias=bias, horizon_s=horizon_s)
+    rng = np.random.default_rng(8)
+    n_paths, steps = 4000, int(H / dt)
+    a = np.exp(-dt / T)
+    gm0 = rng.normal(0.0, s, n_paths)
+    walk = np.cumsum(rng.normal(0.0, q * np.sqrt(dt), (steps, n_paths)), axis=0)
+    gm = np.empty((steps, n_paths))
+    g = gm0
+    for k in range(steps):
+        g = a * g + rng.normal(0.0, s * np.sqrt(1 - a * a), n_paths)
+        gm[k] = g
+    w_p = 1.0 if horizon_s == 0 else T / horizon_s * (1 - np.exp(-horizon_s / T))
+    moved = walk + gm - w_p * gm0  # the walk starts at its pushed value
+    mc = float(np.sqrt(np.mean(moved**2)))
+    np.testing.assert_allclose(kf.wander_dps(H), mc, rtol=0.03)
+    assert np.all(BiasKalman(SEED000_TERMS).wander_dps(H) == 0)  # no wander model: no floor

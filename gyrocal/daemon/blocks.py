@@ -24,6 +24,7 @@ class Block:
     phi: np.ndarray
     n: int
     holdout: bool
+    t_s: float = float("nan")  # the unit's time stamp [s] of the batch that closed it (set by the session)
 
 
 class BlockAccumulator:
@@ -112,6 +113,12 @@ class BlockWindow:
     def __len__(self) -> int:
         return len(self.blocks)
 
+    def since(self, t_s: float) -> BlockWindow:
+        """The blocks closed at or after ``t_s`` [s] (the unit's clock), oldest first, as a new window."""
+        out = BlockWindow(len(self.blocks))
+        out.add([b for b in self.blocks if b.t_s >= t_s])
+        return out
+
     def rms_out(self) -> np.ndarray:
         """RMS over blocks of the unit's output mean [deg/s], per axis: the drift left in the output."""
         if not self.blocks:
@@ -127,3 +134,26 @@ class BlockWindow:
         phi = np.array([b.phi for b in self.blocks])
         res = raw - phi @ np.asarray(coeffs_dps).T
         return np.sqrt(np.mean(res**2, axis=0))
+
+    def paired_gain_z(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray) -> float:
+        """How many standard errors the new set's gain is, paired per block: the mean over blocks of
+        the squared residual (summed over the axes) with ``old_coeffs_dps`` (3, P) minus with
+        ``new_coeffs_dps``, over its standard error (0 with fewer than 3 blocks). None for the old set
+        means the unit's output as sent.
+
+        Why paired: both residuals of a block hold the same noise and the same bias wander, which
+        cancel in the difference but for a cross term of zero mean; a wander that dominates both
+        totals (an MEMS unit's flicker) then still leaves the difference its significance.
+        """
+        if len(self.blocks) < 3:
+            return 0.0
+        raw = np.array([b.raw_dps for b in self.blocks])
+        phi = np.array([b.phi for b in self.blocks])
+        old = np.array([b.out_dps for b in self.blocks]) if old_coeffs_dps is None \
+            else raw - phi @ np.asarray(old_coeffs_dps).T
+        new = raw - phi @ np.asarray(new_coeffs_dps).T
+        d = np.sum(old**2, axis=1) - np.sum(new**2, axis=1)
+        se = float(np.std(d, ddof=1)) / np.sqrt(d.size)
+        if se <= 0:
+            return float("inf") if float(np.mean(d)) > 0 else 0.0
+        return float(np.mean(d)) / se

@@ -66,6 +66,8 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "min_cut": ((int, float), 20.0,
                     "write the factor by which the predicted drift left must undercut the drift removed"),
         "bias_first": ((bool,), True, "write true or false: push a bias-only set first after a switch-on"),
+        "wander_horizon_s": ((int, float), 600.0,
+                             "write the seconds over which the bias wander's drift is weighed by the gate"),
     },
     "monitor": {
         "alarm_ratio": ((int, float), 3.0, "write a ratio > 1"),
@@ -152,6 +154,7 @@ _RANGES: dict[str, Range] = {
     "link.can_node_id": Range(0, 15),
     "push.target_drift_dph": _gt(0, 1e6, "deg/h"),
     "push.min_cut": _gt(1, 1e6),
+    "push.wander_horizon_s": _gt(0, 1e7, "s"),
 }
 
 _TOP = {

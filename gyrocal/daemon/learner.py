@@ -313,6 +313,16 @@ class Learner:
         return {"left_poses": rms_se(poses_phi, False) * infl, "left_sphere": rms_se(sphere_phi, True) * infl,
                 "removes": removes, "stage": "full", "noise_inflation": infl}
 
+    def wander_floor(self, over_s: float) -> np.ndarray | None:
+        """The drift [deg/s] (3,) the bias's wander leaves over the next ``over_s`` seconds whatever set
+        is pushed (refine.gate's floor), or None when the estimator has no wander model (every method
+        but ``kf`` with a random walk or a bias instability in its spec) or is in its bias-only stage."""
+        f = getattr(self.est, "wander_dps", None)
+        if f is None or self.bias_only:
+            return None
+        floor = np.asarray(f(over_s), dtype=float)
+        return floor if np.any(floor > 0) else None
+
     def _solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Residual variance (3,) [deg/s^2] and the eigen-split of R, for the predicted drift."""
         est = self.est

@@ -25,6 +25,16 @@ predicted drift left when it was pushed (3,; zeros for a set the daemon did not 
   tenth of a degree counts where the held set leaves more than 1/``cut`` of the unit's drift at the
   new end (``edge_costs``): an autopilot clamps into TMAX, and its steepest axis pays slope x gap.
 
+A unit whose bias wanders (the ``kf`` estimator with a spec from ``gyrocal analyze``: a random walk,
+a flicker floor) has a ``floor``: the drift the wander leaves over ``push.wander_horizon_s`` whatever
+set is pushed (bias_kalman.BiasKalman.wander_dps). ``left * cut <= removes`` may then never come: on a
+tactical MEMS unit (0.05 deg/s per sample at 100 Hz, B 10 deg/h, walk 21.6 deg/h/sqrt(h)) the predicted
+drift left was 6 deg/h after 25 minutes, against 14-22 deg/h removed, and 1/20 of that takes hours of
+rests, while the unit ran uncalibrated. There an axis also **gains** when learning longer cannot buy
+much (``left <= WANDER_LEFT_SHARE * floor``: the total left, hypot(left, floor), is within 12 % of the
+floor) and the push is worth making (hypot(left, floor) is at most ``1 - min_improvement`` of
+hypot(removes, floor), the drift the unit keeps without it: validation's own ratio).
+
 For a unit that holds no set of ours (``held_left`` zero, no recorded range) this is the old rule:
 every axis must gain. Validation on held-out blocks still follows (session.py), and for a refinement
 it also checks each axis on its own (``axes_not_worse``).
@@ -73,6 +83,11 @@ AXIS_TOLERANCE = 0.05
 blocks are the same for both sets, so their noise is common: the difference is the sets')."""
 
 
+WANDER_LEFT_SHARE = 0.5
+"""With a wandering bias, an axis gains once its predicted drift left is at most this share of the
+wander's floor (module docstring): hypot(0.5, 1) = 1.118, so waiting could cut the total by 11 % at best."""
+
+
 @dataclass(frozen=True)
 class GateResult:
     """The gate's decision, with the per-axis masks it was made from."""
@@ -81,23 +96,31 @@ class GateResult:
     gains: np.ndarray  # (3,) bool
     not_worse: np.ndarray  # (3,) bool
     widened: bool
+    floor: np.ndarray | None = None  # the wander's drift the gate weighed [deg/s] (3,), if any
 
 
 def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
-         held_left: np.ndarray | None = None, widened: bool = False) -> GateResult:
-    """The rule of the module docstring; all figures per axis in deg/s."""
+         held_left: np.ndarray | None = None, widened: bool = False,
+         floor: np.ndarray | None = None, min_improvement: float = 0.2) -> GateResult:
+    """The rule of the module docstring; all figures per axis in deg/s (``floor``: None, or the
+    wander's drift (3,) that no set removes)."""
     left = np.asarray(left, dtype=float)
     removes = np.nan_to_num(np.asarray(removes, dtype=float), nan=0.0)
     held = np.zeros(3) if held_left is None else np.nan_to_num(np.asarray(held_left, dtype=float))
     finite = bool(np.all(np.isfinite(left)))
     with np.errstate(invalid="ignore"):
         gains = (left <= target_dps) | (left * cut <= removes)
+        if floor is not None:
+            f = np.nan_to_num(np.asarray(floor, dtype=float), nan=0.0)
+            gains |= (f > 0) & (left <= WANDER_LEFT_SHARE * f) \
+                & (np.hypot(left, f) <= (1.0 - min_improvement) * np.hypot(removes, f))
         not_worse = gains | (left <= NOT_WORSE_RATIO * np.maximum(held, removes))
     if not np.any(held > 0):  # a held set the daemon knows nothing about: every axis must gain
         ok = finite and bool(np.all(gains))
     else:
         ok = finite and bool(np.all(not_worse)) and (bool(np.any(gains)) or widened)
-    return GateResult(ok, gains, not_worse, widened)
+    kept = None if floor is None else np.asarray(floor, dtype=float)
+    return GateResult(ok, gains, not_worse, widened, kept)
 
 
 def widened(held_range: tuple[float, float] | None, seen: tuple[float, float] | None,

@@ -17,7 +17,9 @@
 - Staged calibration: a warm-started session (a stored set) first pushes a bias-only set, from its
   first still second, validated on the blocks seen; the full set follows once the data supports it.
 - VALIDATING: the new set must lower the held-out residual against the set the unit holds now, by
-  ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged.
+  ``validation.min_improvement``; otherwise nothing is pushed and the reason is logged. On a unit
+  whose bias wanders (a ``kf`` spec), a first set passes on a significant paired gain instead
+  (``WANDER_GAIN_Z``): the wander is in every block and no set removes it (refine.py's floor).
 - PUSHING: push.py's transaction (write, matching ack, read back, retries).
 - APPLIED -> MONITORING: keep learning; a drift alarm when the pushed set's residual grows. The
   residual is raw - C_applied @ phi over the monitor blocks, so blocks of samples the unit sent
@@ -101,6 +103,13 @@ class AppliedSet:
     names: tuple[str, ...]
     coeffs_dps: np.ndarray  # (3, P) deg/s per term unit
 
+    def uses(self, atom: str) -> bool:
+        """Whether a term with a non-zero coefficient needs ``atom`` (``dtemp``, ``temp``, ``t_on``)."""
+        if not self.names:
+            return False
+        terms = TermSpec.parse(self.names).terms
+        return any(atom in term.atoms and bool(np.any(self.coeffs_dps[:, k])) for k, term in enumerate(terms))
+
     def compensation(self, cols: dict[str, np.ndarray], phi: np.ndarray | None = None) -> np.ndarray:
         """What the unit subtracts from its output, (N, 3) [deg/s]; ``phi``: these cols' terms, if known."""
         if not self.names or not np.any(self.coeffs_dps):
@@ -127,6 +136,10 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
 DPH = 3600.0
 SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
 """Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
+WANDER_GAIN_Z = 3.0
+"""A first set on a unit whose bias wanders passes validation when its held-out gain is this many
+standard errors, paired per block (one-sided p about 0.001 for independent blocks; the blocks of one
+rest are alike, so it is kept strict)."""
 PREDICTED_KEYS = ("left", "expected", "bound", "left_poses", "left_sphere", "removes")
 """The per-axis figures [deg/s] of a prediction (learner.py), shown and recorded in deg/h."""
 
@@ -197,6 +210,8 @@ class Session(RecoveryMixin):
         self._next_validation_at = 0
         self._validated_at = 0  # learner samples at the last validation
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
+        self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
+        self.inexact_samples = 0  # still samples set aside: the unit's dtemp not yet known exactly
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -253,15 +268,26 @@ class Session(RecoveryMixin):
     def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
         """Learn from decided samples (SAMPLE_DTYPE) with their still flags."""
         self.samples += samples.size
-        if samples.size == 0 or self.applied is None:
+        if samples.size == 0:
+            return
+        # dtemp follows the unit's rule from the session's first sample, also while the unit's set is
+        # still being read: a copy started later is not the unit's for WINDOW seconds (TempRate.exact)
+        dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"])
+        if self.applied is None:
             return
         if self._t0_unit is None:
             self._t0_unit = float(samples["t"][0])
         cols = {
             "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
-            "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit,
-            "dtemp": self._trate.update(samples["t"], samples["temp"]),
+            "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit, "dtemp": dtemp,
         }
+        if not exact.all() and (self.applied.uses("dtemp") or (self._switch is not None
+                                                                and self._switch[0].uses("dtemp"))):
+            # the unit's compensation cannot be rebuilt exactly for these samples: neither learnt from
+            # nor held out (a warm-up at 0.5 degC/s and a 0.02 deg/s per degC/s coefficient made a
+            # first push cut an independent fibre unit's drift 8.4-19x instead of 14-40x)
+            still = still & exact
+            self.inexact_samples += int((~exact).sum())
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
@@ -272,6 +298,10 @@ class Session(RecoveryMixin):
         phi = block_terms(self.spec, cols)
         raw = out + self._compensation(samples["seq"], cols, phi)
         blocks, train = self.acc.feed(raw, out, phi, still)
+        if len(samples["t"]):
+            self._t_last = float(samples["t"][-1])
+        for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
+            b.t_s = self._t_last
         self.still_samples += int(still.sum())
         if self._has_temp and still.any():
             t = samples["temp"][still]
@@ -343,11 +373,17 @@ class Session(RecoveryMixin):
         settled = refine.settled(self._trate.value, self._peak_trate)
         edge = settled and self._edge_costs(held_range, cut)
         wide = refine.widened(held_range, self.temp_seen, settled, edge)
-        g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide)
+        floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
+        g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
+                                            self.cfg.validation["min_improvement"])
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
                f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
                "the set removes")
+        if floor is not None:
+            why += (f" (or {refine.WANDER_LEFT_SHARE:g} of the bias wander's {_dph(floor)} deg/h over "
+                    f"{self.cfg.push['wander_horizon_s']:g} s, the push cutting the total by "
+                    f"{self.cfg.validation['min_improvement']:.0%})")
         if held_left is not None:
             why += (f" on some axis (or the range seen {_range(self.temp_seen)} widen the held set's "
                     f"{_range(held_range)} degC), leaving no axis worse than the held set's "
@@ -535,8 +571,8 @@ class Session(RecoveryMixin):
         self._projection = proj = project(self.names, self.learner.coefficients, held, poses)
         coeffs = proj.embedded_dps
         blocks = self.holdout if blocks is None else blocks
-        rms_old = blocks.rms_with(self._applied_coeffs()) if self._applied_coeffs() is not None \
-            else blocks.rms_out()
+        applied = self._applied_coeffs()
+        rms_old = blocks.rms_with(applied) if applied is not None else blocks.rms_out()
         rms_new = blocks.rms_with(coeffs)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
@@ -552,6 +588,26 @@ class Session(RecoveryMixin):
         # together or on one, or widens the range: a gain in TMIN..TMAX the held-out residual cannot
         # show (the link reconstructs the unit's output with the held set unclamped)
         enough = new2 <= need * old2
+        # a first set on a unit whose bias wanders (a kf spec with a walk or a flicker floor): the
+        # wander sits in every held-out block beside the noise and no set removes it, so the totals
+        # cannot fall by min_improvement however good the set. It passes when its gain is significant,
+        # paired per block (blocks.paired_gain_z); the gate has already asked that the predicted total,
+        # with the wander's floor, fall by min_improvement (refine.gate)
+        # on the held-out blocks of the last push.wander_horizon_s: the set holds the bias as it is
+        # now, and older blocks had another (all blocks while fewer than min_holdout_blocks are recent)
+        if not enough and stage == "full" and not refining and self.validated_rms is None \
+                and g is not None and g.floor is not None:
+            recent = blocks.since(self._t_last - float(self.cfg.push["wander_horizon_s"]))
+            judged = recent if len(recent) >= self.cfg.validation["min_holdout_blocks"] else blocks
+            r_old = judged.rms_with(applied) if applied is not None else judged.rms_out()
+            r_new = judged.rms_with(coeffs)
+            z = judged.paired_gain_z(applied, coeffs)
+            self.last_validation["wander"] = {
+                "floor_dps": dict(zip("xyz", g.floor.tolist(), strict=True)), "blocks": len(judged),
+                "rms_current_dps": dict(zip("xyz", r_old.tolist(), strict=True)),
+                "rms_new_dps": dict(zip("xyz", r_new.tolist(), strict=True)),
+                "gain_z": round(z, 2), "need_z": WANDER_GAIN_Z}
+            enough = float(np.sum(r_new**2)) < float(np.sum(r_old**2)) and z >= WANDER_GAIN_Z
         if refining and g is not None:
             one_axis = bool(np.any(rms_new <= (1.0 - self.cfg.validation["min_improvement"]) * rms_old))
             enough = enough or one_axis or g.widened
@@ -566,6 +622,10 @@ class Session(RecoveryMixin):
         elif not enough:
             why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
                    f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
+            if "wander" in self.last_validation:
+                why = why.replace("; not pushing", f" (nor significantly, beside the bias wander: "
+                                  f"{self.last_validation['wander']['gain_z']:.1f} standard errors of "
+                                  f"{WANDER_GAIN_Z:g}); not pushing")
         else:
             why = ""
         if why:
@@ -779,7 +839,7 @@ class Session(RecoveryMixin):
             "applied": None if self.applied is None else {
                 "version": self.applied.version, "terms_id": self.applied.terms_id},
             "samples": self.samples, "still_samples": self.still_samples,
-            "trained_samples": self.learner.samples,
+            "trained_samples": self.learner.samples, "dtemp_inexact_samples": self.inexact_samples,
             "terms": self.names,
             "coefficients_dps": finite_or_none(self.learner.coefficients),
             "uncertainty_dps": finite_or_none(self.learner.uncertainty),

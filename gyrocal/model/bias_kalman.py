@@ -309,6 +309,24 @@ class BiasKalman(Estimator):
         """The tracked bias to push, b_rw + b_gm (its mean over ``horizon_s``), (3,) [deg/s]."""
         return (self.X[len(self.spec):] * self._bias_weights()).sum(axis=0)
 
+    def wander_dps(self, over_s: float) -> np.ndarray:
+        """RMS over the next ``over_s`` seconds of the bias's move away from what is pushed now, (3,)
+        [deg/s]: the drift the wander leaves whatever set is pushed (the push gate's floor).
+
+        The walk leaves q^2 H / 2 in mean square over H = ``over_s`` (its value now is its best
+        prediction). The Gauss-Markov part pushed at w_p b0 (``_bias_weights``; w_p = 1 with no
+        ``horizon_s``) leaves s^2 (1 + w_p^2 - 2 w_p w_H), w_H = T/H (1 - exp(-H/T)) the mean of its
+        decay over H. The estimator's own error in the bias is not in it (that is the predicted drift).
+        """
+        h = max(float(over_s), 1e-9)
+        ms = self.bias.random_walk_dps_per_sqrt_s ** 2 * h / 2.0
+        if self.i_gm is not None:
+            T = self.bias.gm_tau_s
+            w_p = self._bias_weights()[-1]
+            w_h = T / h * (1.0 - np.exp(-h / T))
+            ms = ms + self.bias.gm_sigma_dps ** 2 * (1.0 + w_p**2 - 2.0 * w_p * w_h)
+        return np.sqrt(ms)
+
     @property
     def noise_dps(self) -> np.ndarray:
         """The white noise per sample R^(1/2) in use, (3,) [deg/s]."""

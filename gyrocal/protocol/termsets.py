@@ -92,12 +92,28 @@ class TempRate:
         self._n = 0
         self._means: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)
         self.value = 0.0
+        self._first_sec: int | None = None  # the whole second of the first sample this copy saw
+        self._closed = 0  # seconds closed since then
+
+    @property
+    def exact(self) -> bool:
+        """Whether ``value`` is the unit's own: this copy saw the unit's stream from its first second
+        (unit time < 1 s), or the means of the seconds before its first have left the window. A host
+        that starts on a running unit (or reads its set a moment after the HELLO) averages a part of its
+        first second only, and for the next WINDOW seconds its dtemp is not the unit's: during a
+        warm-up the difference times a held dtemp coefficient is a drift the host would learn."""
+        return self._first_sec == 0 or self._closed > self.WINDOW
 
     def update(self, t_s: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
         """Per-sample dtemp (N,) [degC/s] for the next samples in time order."""
+        return self.update_exact(t_s, temp_c)[0]
+
+    def update_exact(self, t_s: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-sample dtemp (N,) [degC/s] and whether each is the unit's own (N,) bool (``exact``)."""
         t = np.asarray(t_s, dtype=np.float64)
         temp = np.asarray(temp_c, dtype=np.float64)
         out = np.empty(t.size)
+        ok = np.empty(t.size, dtype=bool)
         sec = np.floor(t).astype(np.int64)
         i = 0
         while i < t.size:
@@ -105,15 +121,19 @@ class TempRate:
             if self._sec is not None and sec[i] != self._sec:
                 self._close()
             self._sec = int(sec[i])
+            if self._first_sec is None:
+                self._first_sec = self._sec
             out[i:j] = self.value
+            ok[i:j] = self.exact
             self._sum += float(temp[i:j].sum())
             self._n += j - i
             i = j
-        return out
+        return out, ok
 
     def _close(self) -> None:
         if self._n and self._sec is not None:
             self._means.append((self._sec + 0.5, self._sum / self._n))
+            self._closed += 1
         self._sum, self._n = 0.0, 0
         if len(self._means) >= 3:
             tt, yy = np.array(self._means).T

@@ -1,0 +1,64 @@
+"""The host's copy of the unit's dtemp rule is used only where it is the unit's (TempRate.exact).
+
+Why: a unit holding a set with a dtemp term subtracts C @ terms(dtemp) with its own dtemp, the slope
+of its last 20 whole-second temperature means since switch-on (docs/protocol.md, section 6). A host
+that starts on a running unit, or sees its first samples only after reading the unit's set, averages
+a part of its first second only, and for the next 20 seconds its dtemp is not the unit's. During a
+warm-up that difference times the held coefficient is a drift the host learnt: on the independent
+fibre unit with a factory dT/dt set, a daemon that started 2.3 s after the unit pushed nothing in
+150 s on 5 of 8 seeds and cut 2.8-8x on the rest (in process, the same physics as tests/indep).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gyrocal.daemon.config import load_config
+from gyrocal.daemon.store import CalibrationStore
+from gyrocal.protocol.messages import CoeffWrite
+from gyrocal.protocol.termsets import TempRate
+from gyrocal.sim.unit import VirtualUnit
+from tests.grade_harness import GradeRun
+from tests.indep.inprocess import IndepPhysicsUnit
+from tests.indep.truth import temperature
+
+
+def test_a_copy_started_late_is_marked_inexact_until_its_window_is_the_units() -> None:
+    rate = 100.0
+    t = np.arange(0, 40 * rate) / rate
+    temp = np.round(temperature(t, 20.0) / 0.01) * 0.01  # a warm-up, as sent
+    unit, early, late = TempRate(), TempRate(), TempRate()
+    truth = unit.update(t, temp)
+    start = int(2.3 * rate)
+    d_early, ok_early = early.update_exact(t, temp)
+    d_late = np.full(t.size, np.nan)
+    ok_late = np.zeros(t.size, dtype=bool)
+    for part in np.array_split(np.arange(start, t.size), 37):  # fed in uneven chunks, as a link delivers
+        d_late[part], ok_late[part] = late.update_exact(t[part], temp[part])
+    assert ok_early.all() and np.array_equal(d_early, truth)  # seen from the unit's first second
+    assert not ok_late[start:int(23 * rate)].any() and ok_late[int(24 * rate):].all()
+    assert np.max(np.abs(d_late[start:int(23 * rate)] - truth[start:int(23 * rate)])) > 0.01  # degC/s
+    # where it says exact, it is the unit's (to the rounding of sums taken in other chunks)
+    np.testing.assert_allclose(d_late[ok_late], truth[ok_late], rtol=0, atol=1e-9)
+
+
+def test_a_daemon_that_starts_late_on_a_unit_with_a_dtemp_set_still_cuts_10x(tmp_path: Path) -> None:
+    """The unit streams 2.3 s before the daemon sees it; its factory set holds a dT/dt term."""
+    cfg = load_config(None, {"state_dir": str(tmp_path / "state"),
+                             "control_socket": str(tmp_path / "c.sock")})
+    unit = IndepPhysicsUnit("fibre", 400.0, 1, 0x5EED0001)
+    coeffs = np.zeros((3, 14))
+    coeffs[:, 0] = 0.01
+    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
+    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
+    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
+    run = GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), 400.0)
+    run.switch_on()
+    unit.render(int(2.3 * 400))  # sent before the daemon listened
+    run.run(150.0, lambda r: bool(r.pushes) and unit.applied is not None and unit.applied.version > 7)
+    assert run.pushes and unit.applied is not None and unit.applied.version > 7, run.session.reason
+    before, after = unit.drift_rms_dps()
+    assert np.all(after * 10 <= before), before / after
+    assert run.session.status()["dtemp_inexact_samples"] > 0
