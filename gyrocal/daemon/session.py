@@ -211,7 +211,7 @@ class Session(RecoveryMixin):
         self._validated_at = 0  # learner samples at the last validation
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
-        self.inexact_samples = 0  # still samples set aside: the unit's dtemp not yet known exactly
+        self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -284,8 +284,9 @@ class Session(RecoveryMixin):
         if not exact.all() and (self.applied.uses("dtemp") or (self._switch is not None
                                                                 and self._switch[0].uses("dtemp"))):
             # the unit's compensation cannot be rebuilt exactly for these samples: neither learnt from
-            # nor held out (a warm-up at 0.5 degC/s and a 0.02 deg/s per degC/s coefficient made a
-            # first push cut an independent fibre unit's drift 8.4-19x instead of 14-40x)
+            # nor held out (a daemon that started 2.3 s after an independent fibre unit with a
+            # 0.02 deg/s per degC/s factory term, in a 0.5 degC/s warm-up, pushed nothing in 150 s
+            # on 5 of 8 seeds and cut 2.8-8x on the rest: tests/test_dtemp_exact.py)
             still = still & exact
             self.inexact_samples += int((~exact).sum())
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
@@ -591,10 +592,10 @@ class Session(RecoveryMixin):
         # a first set on a unit whose bias wanders (a kf spec with a walk or a flicker floor): the
         # wander sits in every held-out block beside the noise and no set removes it, so the totals
         # cannot fall by min_improvement however good the set. It passes when its gain is significant,
-        # paired per block (blocks.paired_gain_z); the gate has already asked that the predicted total,
-        # with the wander's floor, fall by min_improvement (refine.gate)
-        # on the held-out blocks of the last push.wander_horizon_s: the set holds the bias as it is
-        # now, and older blocks had another (all blocks while fewer than min_holdout_blocks are recent)
+        # paired per block (blocks.paired_gain_z), on the held-out blocks of the last
+        # push.wander_horizon_s (the set holds the bias as it is now, older blocks had another; all
+        # blocks while fewer than min_holdout_blocks are recent). The gate has already asked that the
+        # predicted total, with the wander's floor, fall by min_improvement (refine.gate)
         if not enough and stage == "full" and not refining and self.validated_rms is None \
                 and g is not None and g.floor is not None:
             recent = blocks.since(self._t_last - float(self.cfg.push["wander_horizon_s"]))
