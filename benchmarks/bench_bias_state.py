@@ -62,9 +62,13 @@ def unit(case: str) -> TruthModel:
     return TruthModel(noise_dps=NOISE_DPS, effects=e)
 
 
-def spec_from_still_log(model: TruthModel, seed: int, seconds: float) -> tuple[dict, dict]:
-    """What an Allan analysis of a still recording gives: the spec and the read-off [deg/h]."""
-    c = SessionStream(model, still(), RATE_HZ, seed=10_000 + seed, boot=0).chunk(int(seconds * RATE_HZ))
+def still_recording(model: TruthModel, seed: int, seconds: float) -> dict:
+    """A still recording of the unit, ``seconds`` long (the columns of ``SessionStream.chunk``)."""
+    return SessionStream(model, still(), RATE_HZ, seed=10_000 + seed, boot=0).chunk(int(seconds * RATE_HZ))
+
+
+def spec_from_still_log(c: dict, seconds: float) -> tuple[dict, dict]:
+    """What an Allan analysis of a still recording ``c`` gives: the spec and the read-off [deg/h]."""
     rw, bi, tau_b, noise, shown = {}, {}, {}, {}, {}
     for a in "xyz":
         curve = allan_curve(c[f"w{a}"], RATE_HZ, max_tau_s=seconds / 10)
@@ -80,7 +84,7 @@ def spec_from_still_log(model: TruthModel, seed: int, seconds: float) -> tuple[d
     return spec, shown
 
 
-def spec_from_analyze(model: TruthModel, seed: int, seconds: float) -> tuple[dict, dict]:
+def spec_from_analyze(c: dict, seed: int) -> tuple[dict, dict]:
     """What ``gyrocal analyze`` writes for the daemon from the same still recording: its findings'
     bias blocks (``extend.bias_spec``, the part of OUT.terms.yaml that ``BiasModel.from_spec`` reads)
     and the findings named, so the on-line gain is measured through the real analysis path."""
@@ -88,7 +92,6 @@ def spec_from_analyze(model: TruthModel, seed: int, seconds: float) -> tuple[dic
     from gyrocal.analysis.extend import bias_spec
     from gyrocal.logformat import LogData
 
-    c = SessionStream(model, still(), RATE_HZ, seed=10_000 + seed, boot=0).chunk(int(seconds * RATE_HZ))
     cols = {k: c[k] for k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")}
     r = analyze(LogData(cols, {}, [], "still recording"), seed=seed).result
     return bias_spec(r["findings"], r["allan_terms"]), {f["cause"]: f["axes"] for f in r["findings"]}
@@ -226,23 +229,28 @@ def run_daemon(method: str, model_case: str, seed: int, after_s: float, work: Pa
     drift = np.column_stack([d[f"drift_w{a}"] for a in "xyz"])
     changed = np.flatnonzero(np.any(comp != comp[0], axis=1))
 
-    def dwell_rms_dph(mask: np.ndarray, left: np.ndarray) -> float:
-        st_ = mask & (d["still"] > 0.5)
-        dwell = segment_ids(st_)[st_]
-        n = np.bincount(dwell)
-        mean = np.column_stack([np.bincount(dwell, weights=left[st_, k]) / n for k in range(3)])
-        return float(np.sqrt(np.mean(mean**2)) * 3600)
-
+    still_ = d["still"] > 0.5
     # the window judged: after the push, or (none) the run's last after_s, as the unit kept it
     start = int(changed[0]) if changed.size else int(np.searchsorted(d["t"], d["t"][-1] - after_s))
     window = np.arange(d.size) >= start
     row = {"pushed": pushed_at is not None, "applied": bool(changed.size), "wall_s": time.monotonic() - t0,
            "window_t_s": [float(d["t"][start]), float(d["t"][-1])],
-           "after_dph": dwell_rms_dph(window, drift - comp),          # what the unit kept, compensated
-           "uncompensated_dph": dwell_rms_dph(window, drift)}          # the same rests, no set at all
+           "after_dph": dwell_rms_dph(window & still_, drift - comp),  # what the unit kept, compensated
+           "uncompensated_dph": dwell_rms_dph(window & still_, drift)}  # the same rests, no set at all
     if changed.size:
         row["push_t_s"] = float(d["t"][changed[0]])
     return row
+
+
+def dwell_rms_dph(still_mask: np.ndarray, left_dps: np.ndarray) -> float:
+    """RMS over the still dwells (runs of ``still_mask``) of each dwell's mean of ``left_dps`` (N, 3)
+    [deg/s], in deg/h: what a drift figure means to a navigation user (the mean over a rest)."""
+    if not np.any(still_mask):
+        return float("nan")
+    dwell = segment_ids(still_mask)[still_mask]
+    n = np.bincount(dwell)
+    mean = np.column_stack([np.bincount(dwell, weights=left_dps[still_mask, k]) / n for k in range(3)])
+    return float(np.sqrt(np.mean(mean**2)) * 3600)
 
 
 def paired_ratio(method: list[float], rls: list[float]) -> dict | None:
@@ -282,8 +290,8 @@ def main(argv: list[str] | None = None) -> int:
         model = unit("walk+flicker")
         still_s = 3600.0 if args.quick else args.still_log
         # kf gets what a user would give it: the spec `gyrocal analyze` writes from the still log
-        spec = (spec_from_still_log(model, 0, still_s)[0] if args.no_analyze
-                else spec_from_analyze(model, 0, still_s)[0])
+        rec = still_recording(model, 0, still_s)
+        spec = spec_from_still_log(rec, still_s)[0] if args.no_analyze else spec_from_analyze(rec, 0)[0]
         seeds = range(1 if args.quick else min(args.seeds, 3))
         out: dict = {"case": "walk+flicker", "after_s": args.after, "spec": spec, "runs": {}}
         for s in seeds:
@@ -305,8 +313,9 @@ def main(argv: list[str] | None = None) -> int:
                  "seeds": args.seeds, "cases": {}}
     for case in cases:
         model = unit(case)
-        spec, shown = spec_from_still_log(model, 0, args.still_log)
-        analyzed, named = (None, None) if args.no_analyze else spec_from_analyze(model, 0, args.still_log)
+        rec = still_recording(model, 0, args.still_log)  # one recording for both specs
+        spec, shown = spec_from_still_log(rec, args.still_log)
+        analyzed, named = (None, None) if args.no_analyze else spec_from_analyze(rec, 0)
         runs = [run_one(model, s, args.session, args.after, spec, analyzed) for s in range(args.seeds)]
         summary: dict = {"truth": CASES[case], "allan_read_off": shown, "spec": spec, "methods": {}}
         if analyzed is not None:

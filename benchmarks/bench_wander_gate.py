@@ -32,10 +32,12 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_bias_state import dwell_rms_dph  # noqa: E402  (benchmarks/: the same drift figure)
 
 from gyrocal.daemon.config import load_config  # noqa: E402
 from gyrocal.daemon.store import CalibrationStore  # noqa: E402
-from gyrocal.model.prep import segment_ids  # noqa: E402
 from gyrocal.model.terms import SEED000_TERMS  # noqa: E402
 from gyrocal.sim.schedule import tumble  # noqa: E402
 from gyrocal.sim.truth import DPH, Effects, TruthModel  # noqa: E402
@@ -60,17 +62,6 @@ class RecordingUnit(VirtualUnit):
         self.kept.append(np.column_stack([c["t"], *(c[f"drift_w{a}"] for a in "xyz"),
                                           *(c[f"comp_w{a}"] for a in "xyz"), c["still"]]))
         return chunk
-
-
-def dwell_rms_dph(rows: np.ndarray, left: np.ndarray) -> float:
-    """RMS over still dwells of the dwell-mean of ``left`` (N, 3) [deg/s], in deg/h."""
-    still = rows[:, 7] > 0.5
-    if not np.any(still):
-        return float("nan")
-    ids = segment_ids(still)[still]
-    n = np.bincount(ids)
-    mean = np.column_stack([np.bincount(ids, weights=left[still, k]) / n for k in range(3)])
-    return float(np.sqrt(np.mean(mean**2)) * 3600)
 
 
 def run(method: str, seed: int, session_s: float, bias_dph: float, work: Path) -> dict[str, Any]:
@@ -99,13 +90,13 @@ def run(method: str, seed: int, session_s: float, bias_dph: float, work: Path) -
         if push_s is None and s is not None and s.last_push.get("status") == "acked":
             push_s = round(h.now, 1)
     rows = np.vstack(unit.kept)
-    drift, comp = rows[:, 1:4], rows[:, 4:7]
-    last = rows[:, 0] >= rows[-1, 0] * 2 / 3
+    drift, comp, still_ = rows[:, 1:4], rows[:, 4:7], rows[:, 7] > 0.5
+    last = still_ & (rows[:, 0] >= rows[-1, 0] * 2 / 3)
     return {"method": method, "seed": seed, "push_s": push_s, "cpu_s": round(time.process_time() - t0, 1),
-            "kept_dph": round(dwell_rms_dph(rows, drift - comp), 2),
-            "kept_after_dph": round(dwell_rms_dph(rows[last], (drift - comp)[last]), 2),
-            "raw_dph": round(dwell_rms_dph(rows, drift), 2),
-            "raw_after_dph": round(dwell_rms_dph(rows[last], drift[last]), 2),
+            "kept_dph": round(dwell_rms_dph(still_, drift - comp), 2),
+            "kept_after_dph": round(dwell_rms_dph(last, drift - comp), 2),
+            "raw_dph": round(dwell_rms_dph(still_, drift), 2),
+            "raw_after_dph": round(dwell_rms_dph(last, drift), 2),
             "reason": h.session.reason if h.session is not None else ""}
 
 

@@ -119,21 +119,25 @@ class BlockWindow:
         out.add([b for b in self.blocks if b.t_s >= t_s])
         return out
 
-    def rms_out(self) -> np.ndarray:
-        """RMS over blocks of the unit's output mean [deg/s], per axis: the drift left in the output."""
-        if not self.blocks:
-            return np.full(3, np.nan)
-        out = np.array([b.out_dps for b in self.blocks])
-        return np.sqrt(np.mean(out**2, axis=0))
-
-    def rms_with(self, coeffs_dps: np.ndarray) -> np.ndarray:
-        """RMS over blocks of raw minus the compensation ``coeffs_dps`` (3, P) would apply [deg/s]."""
-        if not self.blocks:
-            return np.full(3, np.nan)
+    def residuals(self, coeffs_dps: np.ndarray | None) -> np.ndarray:
+        """Per block (B, 3) [deg/s]: raw minus what ``coeffs_dps`` (3, P) would apply, or the unit's
+        output as sent when ``coeffs_dps`` is None."""
+        if coeffs_dps is None:
+            return np.array([b.out_dps for b in self.blocks])
         raw = np.array([b.raw_dps for b in self.blocks])
         phi = np.array([b.phi for b in self.blocks])
-        res = raw - phi @ np.asarray(coeffs_dps).T
-        return np.sqrt(np.mean(res**2, axis=0))
+        return raw - phi @ np.asarray(coeffs_dps).T
+
+    def rms_out(self) -> np.ndarray:
+        """RMS over blocks of the unit's output mean [deg/s], per axis: the drift left in the output."""
+        return self.rms_with(None)
+
+    def rms_with(self, coeffs_dps: np.ndarray | None) -> np.ndarray:
+        """RMS over blocks of raw minus the compensation ``coeffs_dps`` (3, P) would apply [deg/s]
+        (None: of the unit's output as sent)."""
+        if not self.blocks:
+            return np.full(3, np.nan)
+        return np.sqrt(np.mean(self.residuals(coeffs_dps) ** 2, axis=0))
 
     def paired_gain_z(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray) -> float:
         """How many standard errors the new set's gain is, paired per block: the mean over blocks of
@@ -147,11 +151,7 @@ class BlockWindow:
         """
         if len(self.blocks) < 3:
             return 0.0
-        raw = np.array([b.raw_dps for b in self.blocks])
-        phi = np.array([b.phi for b in self.blocks])
-        old = np.array([b.out_dps for b in self.blocks]) if old_coeffs_dps is None \
-            else raw - phi @ np.asarray(old_coeffs_dps).T
-        new = raw - phi @ np.asarray(new_coeffs_dps).T
+        old, new = self.residuals(old_coeffs_dps), self.residuals(new_coeffs_dps)
         d = np.sum(old**2, axis=1) - np.sum(new**2, axis=1)
         se = float(np.std(d, ddof=1)) / np.sqrt(d.size)
         if se <= 0:

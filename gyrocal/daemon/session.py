@@ -299,8 +299,7 @@ class Session(RecoveryMixin):
         phi = block_terms(self.spec, cols)
         raw = out + self._compensation(samples["seq"], cols, phi)
         blocks, train = self.acc.feed(raw, out, phi, still)
-        if len(samples["t"]):
-            self._t_last = float(samples["t"][-1])
+        self._t_last = float(samples["t"][-1])
         for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
             b.t_s = self._t_last
         self.still_samples += int(still.sum())
@@ -573,7 +572,7 @@ class Session(RecoveryMixin):
         coeffs = proj.embedded_dps
         blocks = self.holdout if blocks is None else blocks
         applied = self._applied_coeffs()
-        rms_old = blocks.rms_with(applied) if applied is not None else blocks.rms_out()
+        rms_old = blocks.rms_with(applied)  # None: the unit's output as sent
         rms_new = blocks.rms_with(coeffs)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
@@ -600,7 +599,7 @@ class Session(RecoveryMixin):
                 and g is not None and g.floor is not None:
             recent = blocks.since(self._t_last - float(self.cfg.push["wander_horizon_s"]))
             judged = recent if len(recent) >= self.cfg.validation["min_holdout_blocks"] else blocks
-            r_old = judged.rms_with(applied) if applied is not None else judged.rms_out()
+            r_old = judged.rms_with(applied)
             r_new = judged.rms_with(coeffs)
             z = judged.paired_gain_z(applied, coeffs)
             self.last_validation["wander"] = {
@@ -808,7 +807,7 @@ class Session(RecoveryMixin):
         if self.validated_rms is None or len(self.monitor) < 4:
             return
         applied = self._applied_coeffs()
-        rms = self.monitor.rms_out() if applied is None else self.monitor.rms_with(applied)
+        rms = self.monitor.rms_with(applied)  # None: the unit's output as sent
         limit = np.maximum(self.validated_rms * self.cfg.monitor["alarm_ratio"],
                            self.cfg.monitor["alarm_floor_dps"])
         alarm = bool(np.any(rms > limit))

@@ -54,6 +54,11 @@ GM_PEAK = 0.6174
 GM_PEAK_TAU = 1.8926
 
 
+def _decay_mean(tau_s: np.ndarray, over_s: float) -> np.ndarray:
+    """Mean over ``over_s`` [s] of exp(-t/tau) (a Gauss-Markov bias's decay): tau/H (1 - exp(-H/tau))."""
+    return tau_s / over_s * (1.0 - np.exp(-over_s / tau_s))
+
+
 def _zeros3() -> np.ndarray:
     return np.zeros(3)
 
@@ -300,8 +305,7 @@ class BiasKalman(Estimator):
         """Weight of each bias state in the pushed constant (n - P, 3): 1 for b_rw, horizon mean for b_gm."""
         w = np.ones((self.n_state - len(self.spec), 3))
         if self.i_gm is not None and self.horizon_s > 0:
-            T = self.bias.gm_tau_s
-            w[-1] = T / self.horizon_s * (1.0 - np.exp(-self.horizon_s / T))
+            w[-1] = _decay_mean(self.bias.gm_tau_s, self.horizon_s)
         return w
 
     @property
@@ -321,9 +325,8 @@ class BiasKalman(Estimator):
         h = max(float(over_s), 1e-9)
         ms = self.bias.random_walk_dps_per_sqrt_s ** 2 * h / 2.0
         if self.i_gm is not None:
-            T = self.bias.gm_tau_s
             w_p = self._bias_weights()[-1]
-            w_h = T / h * (1.0 - np.exp(-h / T))
+            w_h = _decay_mean(self.bias.gm_tau_s, h)
             ms = ms + self.bias.gm_sigma_dps ** 2 * (1.0 + w_p**2 - 2.0 * w_p * w_h)
         return np.sqrt(ms)
 
