@@ -265,3 +265,35 @@ def test_a_csv_is_streamed_block_by_block_with_the_same_result(sim_log: Path, tm
     bad.write_text("\n".join(rows) + "\n")
     with pytest.raises(LogFormatError, match="goes backwards"):
         list(CsvStream(str(bad), block_rows=30).blocks())
+
+
+def test_a_sample_logs_sessions_are_sent_with_unit_time_since_their_switch_on(tmp_path: Path) -> None:
+    """The wire's unit time is since switch-on (docs/protocol.md); a log's t need not be.
+
+    A replayed session starts at 0 s, as `gyrocal analyze` takes t_on from each session's first
+    sample: a held or learnt exp(-t_on/TAU) then means the same to the unit, the daemon and analyze.
+    """
+    from gyrocal.readers import read_any
+    from gyrocal.replay.source import Recording
+
+    n = 5000  # two blocks and a bit per session
+    t = np.concatenate([500.0 + np.arange(n) / 100, 1200.0 + np.arange(n) / 100])
+    cols = {c: np.zeros(2 * n) for c in COLS} | {"t": t, "az": np.ones(2 * n),
+                                                  "session": np.repeat([0.0, 1.0], n)}
+    path = tmp_path / "late.csv"
+    write_log(path, cols, {})
+    streamed = open_recording(str(path))
+    whole = Recording(str(path), "csv", log=read_any(str(path), "csv"))
+    for rec in (streamed, whole):
+        sessions: list[list[np.ndarray]] = []
+        for kind, ev in rec.events():
+            if kind == "msg":
+                assert isinstance(ev, Hello) and ev.rate_hz == 100
+                sessions.append([])
+            else:
+                sessions[-1].append(ev)
+        assert len(sessions) == 2
+        for blocks in sessions:
+            got = np.concatenate([b["t"] for b in blocks])
+            np.testing.assert_allclose(got, np.arange(n) / 100, atol=1e-9)
+            assert np.array_equal(np.concatenate([b["seq"] for b in blocks]), np.arange(n))

@@ -204,7 +204,6 @@ class Session(RecoveryMixin):
         self.prediction: dict[str, Any] = {}
         self._bias_pushed = False
         self._push_prediction: dict[str, Any] = {}
-        self._t0_unit: float | None = None
         self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
         self._next_check = now
         self._next_validation_at = 0
@@ -275,11 +274,13 @@ class Session(RecoveryMixin):
         dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"])
         if self.applied is None:
             return
-        if self._t0_unit is None:
-            self._t0_unit = float(samples["t"][0])
+        # t_on is the unit's time since switch-on, as the unit evaluates its set (protocol.md,
+        # section 6), never the time since this daemon's first sample: a daemon that starts after
+        # the unit (boot order, a restart) would otherwise learn a warm-up exp(-t_on/TAU) scaled by
+        # exp(-delay/TAU) and push it (tests/test_t_on_unit_time.py)
         cols = {
             "t": samples["t"], "ax": samples["ax"], "ay": samples["ay"], "az": samples["az"],
-            "temp": samples["temp"], "t_on": samples["t"] - self._t0_unit, "dtemp": dtemp,
+            "temp": samples["temp"], "t_on": samples["t"], "dtemp": dtemp,
         }
         if not exact.all() and (self.applied.uses("dtemp") or (self._switch is not None
                                                                 and self._switch[0].uses("dtemp"))):

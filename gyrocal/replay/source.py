@@ -4,7 +4,10 @@ Link recordings (python-can logs, serial byte captures) hold the unit's own mess
 through the live link's decoders, in order. Any other log (CSV, .ulg, .bin, .tlog, rosbag2) holds samples
 only: each session becomes a HELLO (serial, firmware and boot count from the log's metadata when it
 has them) followed by its samples, with ``seq`` counting from 0 at the switch-on as a unit's does;
-the set the unit held comes from the ``applied_*`` metadata, else the unit held none.
+the set the unit held comes from the ``applied_*`` metadata, else the unit held none. Its ``t`` is
+sent as the unit time a unit sends, since the switch-on: the log's ``t`` less that of the session's
+first sample (as the analysis takes ``t_on``), so a warm-up term means the same to the replayed unit,
+the daemon and `gyrocal analyze`.
 
 Sample blocks are ``SAMPLE_DTYPE`` arrays (the ring's records, rx = 0) of at most ``BLOCK`` samples.
 """
@@ -168,11 +171,13 @@ def _hello(meta: dict[str, str], k: int, t: np.ndarray) -> Hello:
                  int(min(round(rate), 65535)))
 
 
-def _block(cols: dict[str, np.ndarray], i0: int, i1: int, seq0: int) -> np.ndarray:
+def _block(cols: dict[str, np.ndarray], i0: int, i1: int, seq0: int, t0: float) -> np.ndarray:
+    """Samples i0..i1 as ring records; ``t0`` [s] is the log time of the session's first sample."""
     b = np.zeros(i1 - i0, dtype=SAMPLE_DTYPE)
     b["seq"] = np.arange(seq0, seq0 + i1 - i0)
-    for c in ("t", "wx", "wy", "wz", "ax", "ay", "az"):
+    for c in ("wx", "wy", "wz", "ax", "ay", "az"):
         b[c] = cols[c][i0:i1]
+    b["t"] = cols["t"][i0:i1] - t0
     b["temp"] = cols["temp"][i0:i1] if "temp" in cols else 25.0
     return b
 
@@ -180,7 +185,7 @@ def _block(cols: dict[str, np.ndarray], i0: int, i1: int, seq0: int) -> np.ndarr
 def _stream_events(stream: Any) -> Iterator[Event]:
     """Events of a CSV read block by block: a HELLO where ``session`` changes, then its samples."""
     session: float | None = None
-    k, seq = -1, 0
+    k, seq, t0 = -1, 0, 0.0
     for cols in stream.blocks():
         s = cols["session"]
         cuts = np.flatnonzero(np.diff(s) != 0) + 1
@@ -188,11 +193,11 @@ def _stream_events(stream: Any) -> Iterator[Event]:
             if i1 <= i0:
                 continue
             if session is None or s[i0] != session:
-                session, k, seq = float(s[i0]), k + 1, 0
+                session, k, seq, t0 = float(s[i0]), k + 1, 0, float(cols["t"][i0])
                 yield "msg", _hello(stream.metadata, k, cols["t"][i0:i1])
             for j0 in range(i0, i1, BLOCK):
                 j1 = min(j0 + BLOCK, i1)
-                yield "samples", _block(cols, j0, j1, seq)
+                yield "samples", _block(cols, j0, j1, seq, t0)
                 seq += j1 - j0
 
 
@@ -204,7 +209,9 @@ def _log_events(log: LogData) -> Iterator[Event]:
     cuts = np.flatnonzero(np.diff(sess) != 0) + 1
     starts = np.concatenate(([0], cuts)) if len(log) else np.zeros(0, dtype=int)
     ends = np.concatenate((cuts, [len(log)])) if len(log) else np.zeros(0, dtype=int)
-    temp = log["temp"] if log.has("temp") else np.full(len(log), 25.0)
+    cols = {c: log[c] for c in ("t", "wx", "wy", "wz", "ax", "ay", "az")}
+    if log.has("temp"):
+        cols["temp"] = log["temp"]
     for k, (i0, i1) in enumerate(zip(starts, ends, strict=True)):
         t = log["t"][i0:i1]
         rate = 1.0 / float(np.median(np.diff(t))) if t.size > 2 and np.median(np.diff(t)) > 0 else 0.0
@@ -212,9 +219,4 @@ def _log_events(log: LogData) -> Iterator[Event]:
                            int(min(round(rate), 65535)))
         for j0 in range(i0, i1, BLOCK):
             j1 = min(j0 + BLOCK, i1)
-            b = np.zeros(j1 - j0, dtype=SAMPLE_DTYPE)
-            b["seq"] = np.arange(j0 - i0, j1 - i0)
-            for c in ("t", "wx", "wy", "wz", "ax", "ay", "az"):
-                b[c] = log[c][j0:j1]
-            b["temp"] = temp[j0:j1]
-            yield "samples", b
+            yield "samples", _block(cols, j0, j1, j0 - i0, float(t[0]))

@@ -127,7 +127,7 @@ class ReplayUnit:
         if self.ours is None:  # the recorded output stands: no need for the rate (a fit per block)
             return block
         cols = {c: block[c] for c in ("t", "ax", "ay", "az", "temp")}
-        cols["t_on"] = block["t"] - self._t0
+        cols["t_on"] = block["t"]  # the unit time it sends is since switch-on (protocol.md, section 6)
         if self._needs_dtemp():  # a least-squares fit per block: only for sets with a dtemp term
             cols["dtemp"] = np.full(block.size, self._temperature_rate())
         delta = self._delta(cols)
