@@ -14,6 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from gyrocal.daemon.config import load_config
 from gyrocal.daemon.store import CalibrationStore
@@ -44,8 +45,31 @@ def test_a_copy_started_late_is_marked_inexact_until_its_window_is_the_units() -
     np.testing.assert_allclose(d_late[ok_late], truth[ok_late], rtol=0, atol=1e-9)
 
 
-def test_a_daemon_that_starts_late_on_a_unit_with_a_dtemp_set_still_cuts_10x(tmp_path: Path) -> None:
-    """The unit streams 2.3 s before the daemon sees it; its factory set holds a dT/dt term."""
+def test_a_copy_that_misses_the_start_of_second_0_is_not_the_units() -> None:
+    """Half of the unit's first second is not its first second: the mean of it is another mean."""
+    rate = 400.0
+    t = np.arange(0, 30 * rate) / rate
+    seq = np.arange(t.size)
+    temp = np.round(temperature(t, 22.0) / 0.01) * 0.01
+    truth = TempRate().update(t, temp)
+    start = int(0.5 * rate)
+    half = TempRate()
+    d_half, ok_half = half.update_exact(t[start:], temp[start:], seq[start:])
+    assert not ok_half[: int(20.5 * rate)].any() and ok_half[int(21 * rate):].all()
+    assert np.max(np.abs(d_half - truth[start:])[: int(20 * rate)]) > 0.01  # degC/s
+    whole = TempRate()
+    assert whole.update_exact(t, temp, seq)[1].all()  # from seq 0: the unit's own at once
+
+
+@pytest.mark.parametrize("late_s", [0.75, 2.3])
+def test_a_daemon_that_starts_late_on_a_unit_with_a_dtemp_set_still_cuts_10x(tmp_path: Path,
+                                                                             late_s: float) -> None:
+    """The unit streams late_s before the daemon sees it; its factory set holds a dT/dt term.
+
+    Under a second is the pty case (tests/test_indep_unit.py): the daemon opens the port while the
+    unit's first second runs. When any part of second 0 counted as exact, this unit's first push cut
+    16.6 / 7.3 / 40x at 0.75 s (seeds 1-3 at 0.25-0.75 s: 5.7-149x; now 35-180x).
+    """
     cfg = load_config(None, {"state_dir": str(tmp_path / "state"),
                              "control_socket": str(tmp_path / "c.sock")})
     unit = IndepPhysicsUnit("fibre", 400.0, 1, 0x5EED0001)
@@ -56,7 +80,7 @@ def test_a_daemon_that_starts_late_on_a_unit_with_a_dtemp_set_still_cuts_10x(tmp
     unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
     run = GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), 400.0)
     run.switch_on()
-    unit.render(int(2.3 * 400))  # sent before the daemon listened
+    unit.render(int(late_s * 400))  # sent before the daemon listened
     run.run(150.0, lambda r: bool(r.pushes) and unit.applied is not None and unit.applied.version > 7)
     assert run.pushes and unit.applied is not None and unit.applied.version > 7, run.session.reason
     before, after = unit.drift_rms_dps()

@@ -271,7 +271,7 @@ class Session(RecoveryMixin):
             return
         # dtemp follows the unit's rule from the session's first sample, also while the unit's set is
         # still being read: a copy started later is not the unit's for WINDOW seconds (TempRate.exact)
-        dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"])
+        dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"], samples["seq"])
         if self.applied is None:
             return
         # t_on is the unit's time since switch-on, as the unit evaluates its set (protocol.md,

@@ -92,24 +92,31 @@ class TempRate:
         self._n = 0
         self._means: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)
         self.value = 0.0
-        self._first_sec: int | None = None  # the whole second of the first sample this copy saw
+        self._from_switch_on = False  # whether this copy's first sample was the unit's first (seq 0)
         self._closed = 0  # seconds closed since then
 
     @property
     def exact(self) -> bool:
-        """Whether ``value`` is the unit's own: this copy saw the unit's stream from its first second
-        (unit time < 1 s), or the means of the seconds before its first have left the window. A host
-        that starts on a running unit (or reads its set a moment after the HELLO) averages a part of its
+        """Whether ``value`` is the unit's own: this copy saw the unit's stream from its first sample,
+        or the means of the seconds before its first whole one have left the window. A host that
+        starts on a running unit (or reads its set a moment after the HELLO) averages a part of its
         first second only, and for the next WINDOW seconds its dtemp is not the unit's: during a
-        warm-up the difference times a held dtemp coefficient is a drift the host would learn."""
-        return self._first_sec == 0 or self._closed > self.WINDOW
+        warm-up the difference times a held dtemp coefficient is a drift the host would learn. Seeing
+        a part of second 0 is not enough: a daemon that heard the unit from 0.5 s learnt that drift
+        (tests/test_dtemp_exact.py)."""
+        return self._from_switch_on or self._closed > self.WINDOW
 
     def update(self, t_s: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
         """Per-sample dtemp (N,) [degC/s] for the next samples in time order."""
         return self.update_exact(t_s, temp_c)[0]
 
-    def update_exact(self, t_s: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-sample dtemp (N,) [degC/s] and whether each is the unit's own (N,) bool (``exact``)."""
+    def update_exact(self, t_s: np.ndarray, temp_c: np.ndarray,
+                     seq: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per-sample dtemp (N,) [degC/s] and whether each is the unit's own (N,) bool (``exact``).
+
+        ``seq``: the samples' seq (protocol.md: 0 at switch-on). A copy whose first sample is not
+        seq 0 missed the start of its first second. None: the copy is the unit's own, from switch-on.
+        """
         t = np.asarray(t_s, dtype=np.float64)
         temp = np.asarray(temp_c, dtype=np.float64)
         out = np.empty(t.size)
@@ -120,9 +127,9 @@ class TempRate:
             j = i + int(np.searchsorted(sec[i:], sec[i], side="right"))
             if self._sec is not None and sec[i] != self._sec:
                 self._close()
+            if self._sec is None:  # this copy's first sample
+                self._from_switch_on = bool(sec[i] == 0 and (seq is None or int(seq[0]) == 0))
             self._sec = int(sec[i])
-            if self._first_sec is None:
-                self._first_sec = self._sec
             out[i:j] = self.value
             ok[i:j] = self.exact
             self._sum += float(temp[i:j].sum())
