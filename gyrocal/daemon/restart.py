@@ -24,15 +24,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-log = logging.getLogger("gyrocal.restart")
+from gyrocal.protocol.messages import SEQ_MODULO
 
-SEQ_MOD = 1 << 32
+log = logging.getLogger("gyrocal.restart")
 
 
 def _forward(a: int, b: int) -> int:
     """How far b is after a (mod 2^32), as a signed distance in (-2^31, 2^31]."""
-    d = (b - a) % SEQ_MOD
-    return d - SEQ_MOD if d > SEQ_MOD // 2 else d
+    d = (b - a) % SEQ_MODULO
+    return d - SEQ_MODULO if d > SEQ_MODULO // 2 else d
 
 
 @dataclass
@@ -73,7 +73,7 @@ class SeqTracker:
         if block.size == 0:
             return out
         seq = block["seq"].astype(np.int64)
-        cuts = np.flatnonzero((np.diff(seq) % SEQ_MOD) != 1) + 1
+        cuts = np.flatnonzero((np.diff(seq) % SEQ_MODULO) != 1) + 1
         for seg in np.split(block, cuts):
             self._segment(seg, out)
         return out

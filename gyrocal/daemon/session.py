@@ -78,7 +78,7 @@ from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
-from gyrocal.protocol.messages import CoeffReport, CoeffWrite, Hello
+from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello
 from gyrocal.protocol.termsets import TempRate, names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
@@ -463,7 +463,7 @@ class Session(RecoveryMixin):
         if last_seq is None:
             after = np.ones(seq.size, dtype=bool)
         else:
-            d = (seq.astype(np.int64) - last_seq) % (1 << 32)  # seq after last_seq, across the u32 wrap
+            d = (seq.astype(np.int64) - last_seq) % SEQ_MODULO  # seq after last_seq, across the u32 wrap
             after = (d > 0) & (d < (1 << 31))
         if after.any():
             comp[after] = new.compensation({k: v[after] for k, v in cols.items()})

@@ -61,6 +61,8 @@ class NakReason(IntEnum):
 
 Vec3 = tuple[float, float, float]
 CoeffRows = tuple[tuple[float, ...], ...]
+SEQ_MODULO = 1 << 32
+"""A sample's seq is a u32: it wraps here."""
 
 
 @dataclass(frozen=True, slots=True)

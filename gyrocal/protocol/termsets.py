@@ -18,6 +18,7 @@ import numpy as np
 
 from gyrocal.errors import ProtocolError
 from gyrocal.model.terms import SEED000_TERMS
+from gyrocal.protocol.messages import SEQ_MODULO
 
 EXTENDED_TEMP_TERMS: tuple[str, ...] = SEED000_TERMS + ("temp", "temp^2", "dtemp", "temp*dtemp")
 """Seed 000's ten gravity terms plus temperature level [degC] and rate [degC/s] terms."""
@@ -92,19 +93,25 @@ class TempRate:
         self._n = 0
         self._means: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)
         self.value = 0.0
-        self._from_switch_on = False  # whether this copy's first sample was the unit's first (seq 0)
-        self._closed = 0  # seconds closed since then
+        self._dirty: int | None = None  # the last whole second this copy saw only in part
+        self._last: tuple[int, float] | None = None  # seq and t [s] of the last sample seen
+
+    LOST_S = 0.01
+    """Samples lost in a gap [s of unit time] above which the seconds around it count as seen in
+    part: 1 % of a second's samples moves its mean by at most 1 % of the temperature's change over
+    that second. A link that drops a frame now and then must not stop the learning."""
 
     @property
     def exact(self) -> bool:
-        """Whether ``value`` is the unit's own: this copy saw the unit's stream from its first sample,
-        or the means of the seconds before its first whole one have left the window. A host that
-        starts on a running unit (or reads its set a moment after the HELLO) averages a part of its
-        first second only, and for the next WINDOW seconds its dtemp is not the unit's: during a
-        warm-up the difference times a held dtemp coefficient is a drift the host would learn. Seeing
-        a part of second 0 is not enough: a daemon that heard the unit from 0.5 s learnt that drift
-        (tests/test_dtemp_exact.py)."""
-        return self._from_switch_on or self._closed > self.WINDOW
+        """Whether ``value`` is the unit's own: every second in the window was seen whole.
+
+        A host that starts on a running unit (or reads its set a moment after the HELLO) averages a
+        part of its first second only, and for the next WINDOW seconds its dtemp is not the unit's:
+        during a warm-up the difference times a held dtemp coefficient is a drift the host would
+        learn. Seeing a part of second 0 is not enough (a daemon that heard the unit from 0.5 s
+        learnt that drift), nor is a link that came back after a gap (tests/test_dtemp_exact.py).
+        """
+        return self._dirty is None or (self._sec is not None and self._sec > self._dirty + self.WINDOW)
 
     def update(self, t_s: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
         """Per-sample dtemp (N,) [degC/s] for the next samples in time order."""
@@ -115,20 +122,25 @@ class TempRate:
         """Per-sample dtemp (N,) [degC/s] and whether each is the unit's own (N,) bool (``exact``).
 
         ``seq``: the samples' seq (protocol.md: 0 at switch-on). A copy whose first sample is not
-        seq 0 missed the start of its first second. None: the copy is the unit's own, from switch-on.
+        seq 0 missed the start of its first second; a jump in seq that lost more than ``LOST_S`` of
+        unit time leaves the seconds around it seen in part. None: no gaps looked for (the unit's own).
         """
         t = np.asarray(t_s, dtype=np.float64)
         temp = np.asarray(temp_c, dtype=np.float64)
         out = np.empty(t.size)
         ok = np.empty(t.size, dtype=bool)
         sec = np.floor(t).astype(np.int64)
+        gap = np.zeros(t.size, dtype=bool)
+        if seq is not None and t.size:
+            gap = self._gaps(np.asarray(seq, dtype=np.int64), t)
         i = 0
         while i < t.size:
             j = i + int(np.searchsorted(sec[i:], sec[i], side="right"))
             if self._sec is not None and sec[i] != self._sec:
                 self._close()
-            if self._sec is None:  # this copy's first sample
-                self._from_switch_on = bool(sec[i] == 0 and (seq is None or int(seq[0]) == 0))
+            first = self._sec is None and not (sec[i] == 0 and (seq is None or int(seq[0]) == 0))
+            if first or gap[i:j].any():  # a first sample that is not the unit's first, or a gap
+                self._dirty = int(sec[i])
             self._sec = int(sec[i])
             out[i:j] = self.value
             ok[i:j] = self.exact
@@ -137,10 +149,17 @@ class TempRate:
             i = j
         return out, ok
 
+    def _gaps(self, seq: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Per sample: whether more than LOST_S of unit time was lost just before it."""
+        last = (int(seq[0]) - 1, float(t[0])) if self._last is None else self._last
+        prev_seq, prev_t = np.r_[last[0], seq[:-1]], np.r_[last[1], t[:-1]]
+        self._last = (int(seq[-1]), float(t[-1]))
+        lost = (seq - prev_seq - 1) % SEQ_MODULO
+        return lost * (t - prev_t) / (lost + 1) > self.LOST_S
+
     def _close(self) -> None:
         if self._n and self._sec is not None:
             self._means.append((self._sec + 0.5, self._sum / self._n))
-            self._closed += 1
         self._sum, self._n = 0.0, 0
         if len(self._means) >= 3:
             tt, yy = np.array(self._means).T

@@ -30,6 +30,7 @@ from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import (
+    SEQ_MODULO,
     CoeffAck,
     CoeffNak,
     CoeffRead,
@@ -47,10 +48,6 @@ from gyrocal.sim.truth import SessionStream, TruthModel, pose_drift_rms_dps
 
 MAX_COEFF_DPS = 10.0
 """The largest coefficient magnitude the unit accepts [deg/s per term unit]; more is OUT_OF_RANGE."""
-
-SEQ_MODULO = 1 << 32
-"""The sample counter wraps at 2^32 (u32 on the wire)."""
-
 
 @dataclass
 class Faults:
