@@ -297,3 +297,26 @@ def test_a_sample_logs_sessions_are_sent_with_unit_time_since_their_switch_on(tm
             got = np.concatenate([b["t"] for b in blocks])
             np.testing.assert_allclose(got, np.arange(n) / 100, atol=1e-9)
             assert np.array_equal(np.concatenate([b["seq"] for b in blocks]), np.arange(n))
+
+
+def test_the_replayed_unit_applies_a_pushed_dtemp_term_with_the_protocols_rule() -> None:
+    """dtemp is the unit's rule (protocol.md, section 6) that the daemon rebuilds, not another fit."""
+    from gyrocal.daemon.ring import SAMPLE_DTYPE
+    from gyrocal.protocol.messages import CoeffAck, CoeffWrite
+    from gyrocal.protocol.termsets import TempRate, names_for
+    from gyrocal.replay.unit import ReplayUnit
+
+    names = list(names_for(0x549E))
+    unit = ReplayUnit(Hello(1, "1.0.0", 1), CoeffReport(3, 0x549E, [[0.0] * 14] * 3))
+    n = 400 * 30
+    block = np.zeros(n, dtype=SAMPLE_DTYPE)
+    block["t"] = np.arange(n) / 400
+    block["az"] = 1.0
+    block["temp"] = np.round((25 + 8 * (1 - np.exp(-block["t"] / 40))) / 0.01) * 0.01  # a warm-up
+    unit.output(block[:4000])  # the unit runs before the push: its rule runs from switch-on
+    pushed = [[0.0] * 12 + [0.02, 0.0], [0.0] * 14, [0.0] * 14]  # deg/s per degC/s on x
+    assert isinstance(unit.answer(CoeffWrite(4, 0x549E, pushed))[0], CoeffAck)
+    out = np.concatenate([unit.output(block[i:i + 1000]) for i in range(4000, n, 1000)])
+    dtemp = TempRate().update(block["t"], block["temp"])[4000:]
+    assert names[12] == "dtemp" and np.max(np.abs(dtemp)) > 0.05  # degC/s
+    np.testing.assert_allclose(out["wx"], -0.02 * dtemp, rtol=0, atol=1e-12)

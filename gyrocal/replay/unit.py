@@ -13,15 +13,15 @@ received our COEFF_WRITE. We answer as a unit of the protocol would (docs/protoc
 
 A unit outputs raw - C_applied . phi. After our push the recorded output (compensated with the
 recorded set C_rec) is re-compensated: out = out_rec + C_rec . phi - C_ours . phi, with phi from the
-same inputs the daemon uses (measured accel, temperature, t_on, dtemp), so the daemon's monitoring
-sees what the pushed set would have done to the recorded data. The recording's own COEFF_ACK,
+same inputs the daemon uses (measured accel, temperature, t_on = the unit time sent, dtemp by the
+protocol's rule, section 6), so the daemon's monitoring sees what the pushed set would have done to
+the recorded data. The recording's own COEFF_ACK,
 COEFF_NAK and COEFF_REPORT answered another host: they update C_rec, never reach the daemon.
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
 from typing import Any
 
 import numpy as np
@@ -39,7 +39,7 @@ from gyrocal.protocol.messages import (
     NakReason,
     coeff_set_crc,
 )
-from gyrocal.protocol.termsets import names_for
+from gyrocal.protocol.termsets import TempRate, names_for
 
 EMPTY_SET = CoeffReport(version=0, terms_id=0, coeffs_dps=((), (), ()))
 """What a unit that holds no calibration reports."""
@@ -58,8 +58,7 @@ class ReplayUnit:
         self.synthesized_hello = False
         self.unit_time_s = 0.0
         self._t0: float | None = None
-        self._temp_hist: deque[tuple[float, float]] = deque(maxlen=32)
-        self._temp_t = 0.0  # unit time [s] of the newest output block
+        self._trate = TempRate()  # dtemp by the protocol's rule (section 6), from the recording's start
         self._spec_key: tuple[tuple[str, ...], tuple[str, ...]] | None = None
         self._spec_ours: TermSpec | None = None
         self._spec_rec: TermSpec | None = None
@@ -71,7 +70,7 @@ class ReplayUnit:
             h = self.hello
             if h is None or (msg.serial, msg.boot_count) != (h.serial, h.boot_count):
                 self._t0 = None
-                self._temp_hist.clear()
+                self._trate = TempRate()
             self.hello = msg
             return True
         if isinstance(msg, CoeffReport):
@@ -123,13 +122,12 @@ class ReplayUnit:
         if self._t0 is None:
             self._t0 = float(block["t"][0])
         self.unit_time_s = float(block["t"][-1])
-        self._note_temperature(block)
-        if self.ours is None:  # the recorded output stands: no need for the rate (a fit per block)
+        dtemp = self._trate.update(block["t"], block["temp"])  # followed whether or not a set uses it
+        if self.ours is None:  # the recorded output stands
             return block
         cols = {c: block[c] for c in ("t", "ax", "ay", "az", "temp")}
         cols["t_on"] = block["t"]  # the unit time it sends is since switch-on (protocol.md, section 6)
-        if self._needs_dtemp():  # a least-squares fit per block: only for sets with a dtemp term
-            cols["dtemp"] = np.full(block.size, self._temperature_rate())
+        cols["dtemp"] = dtemp
         delta = self._delta(cols)
         out = block.copy()
         out["wx"] += delta[:, 0]
@@ -149,10 +147,6 @@ class ReplayUnit:
         assert self._spec_ours is not None
         return self._spec_ours, self._spec_rec
 
-    def _needs_dtemp(self) -> bool:
-        ours, rec = self._specs()
-        return "dtemp" in ours.atoms or (rec is not None and "dtemp" in rec.atoms)
-
     def _delta(self, cols: dict[str, np.ndarray]) -> np.ndarray:
         """C_rec . phi - C_ours . phi, (N, 3) [deg/s]: one design matrix when both sets share terms."""
         rec, ours = self.recorded, self.ours
@@ -164,19 +158,3 @@ class ReplayUnit:
         comp_rec = self._spec_rec.design(cols) @ rec.coeffs_dps.T if self._spec_rec is not None \
             and np.any(rec.coeffs_dps) else 0.0
         return comp_rec - phi @ ours.coeffs_dps.T
-
-    def _note_temperature(self, block: np.ndarray) -> None:
-        """Keep one (t [s], mean temp [degC]) point per second of the output, for the rate."""
-        t, temp = float(block["t"][-1]), float(np.mean(block["temp"]))
-        self._temp_t = t
-        if not self._temp_hist or t - self._temp_hist[-1][0] >= 1.0:
-            self._temp_hist.append((t, temp))
-
-    def _temperature_rate(self) -> float:
-        """dT/dt [degC/s] as the daemon estimates it: the slope of 1 s means over the last 20 s."""
-        t = self._temp_t
-        pts = [(ti, yi) for ti, yi in self._temp_hist if t - ti <= 20.0]
-        if len(pts) < 3:
-            return 0.0
-        tt, yy = np.array(pts).T
-        return float(np.polyfit(tt - tt[0], yy, 1)[0])
