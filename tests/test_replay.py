@@ -320,3 +320,22 @@ def test_the_replayed_unit_applies_a_pushed_dtemp_term_with_the_protocols_rule()
     dtemp = TempRate().update(block["t"], block["temp"])[4000:]
     assert names[12] == "dtemp" and np.max(np.abs(dtemp)) > 0.05  # degC/s
     np.testing.assert_allclose(out["wx"], -0.02 * dtemp, rtol=0, atol=1e-12)
+
+
+def test_a_link_capture_started_late_keeps_the_units_time_since_switch_on(tmp_path: Path) -> None:
+    """A capture that starts 100 s after the switch-on: t_on is 100 s at its first sample, in the
+    analysis (derived_columns) and on the replayed wire, also once converted to CSV."""
+    from gyrocal.model.terms import derived_columns, from_switch_on
+    from gyrocal.protocol.messages import Sample
+    from gyrocal.readers.stream import messages_to_log
+
+    msgs = [Hello(9, "1.0.0", 3, 100)]
+    msgs += [Sample(10_000 + i, 100.0 + i / 100, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 25.0) for i in range(300)]
+    log = messages_to_log(msgs, "capture")
+    assert from_switch_on(log.metadata)
+    t_on = derived_columns(log.columns, t_from_switch_on=True)["t_on"]
+    np.testing.assert_allclose(t_on[[0, -1]], [100.0, 102.99])
+    path = tmp_path / "capture.csv"
+    write_log(path, log.columns, log.metadata)
+    sent = np.concatenate([b["t"] for kind, b in open_recording(str(path)).events() if kind == "samples"])
+    np.testing.assert_allclose(sent[[0, -1]], [100.0, 102.99])

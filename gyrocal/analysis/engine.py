@@ -35,7 +35,7 @@ from gyrocal.analysis.timestamps import describe, retime
 from gyrocal.errors import GyrocalError
 from gyrocal.logformat import LogData
 from gyrocal.model.allan import allan_curve, fit_noise_terms, read_noise_terms
-from gyrocal.model.terms import SEED000_TERMS, derived_columns
+from gyrocal.model.terms import SEED000_TERMS, derived_columns, from_switch_on
 
 DEFAULT_TAU_S = 1.0
 TEST_NAME = (
@@ -94,7 +94,7 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
     columns, retimed = retime(log.columns)
     if retimed:
         say(describe(retimed))
-    cols = derived_columns(columns)
+    cols = derived_columns(columns, t_from_switch_on=from_switch_on(log.metadata))
     usable = usable_samples(cols)
     if usable.index.size < 100:
         raise AnalysisError(

@@ -20,7 +20,7 @@ import numpy as np
 
 from gyrocal.logformat import LogData
 from gyrocal.model.still import detect_still, sample_rate_hz
-from gyrocal.model.terms import TermSpec, derived_columns
+from gyrocal.model.terms import TermSpec, derived_columns, from_switch_on
 
 
 @dataclass
@@ -79,7 +79,7 @@ def segment_ids(mask: np.ndarray) -> np.ndarray:
 
 def prepare(log: LogData, spec: TermSpec, all_samples: bool = False, window_s: float = 0.4) -> FitData:
     """Terms, gyro and time of the samples to fit: still ones by default, every one with all_samples."""
-    cols = derived_columns(log.columns)
+    cols = derived_columns(log.columns, t_from_switch_on=from_switch_on(log.metadata))
     g = gravity_direction(log.accel_g)
     cols.update({"gx": g[:, 0], "gy": g[:, 1], "gz": g[:, 2]})
     phi = spec.design(cols)

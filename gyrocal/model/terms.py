@@ -159,13 +159,24 @@ class TermSpec:
         return self.design(arrays)[0]
 
 
+T_ORIGIN_KEY = "t_origin"
+"""Log metadata key: ``switch_on`` when ``t`` is the unit's time since switch-on (docs/logformat.md)."""
+
+
+def from_switch_on(metadata: Mapping[str, str]) -> bool:
+    """Whether a log's ``t`` is the unit's time since switch-on (its metadata says so)."""
+    return metadata.get(T_ORIGIN_KEY, "") == "switch_on"
+
+
 def derived_columns(
-    columns: Mapping[str, np.ndarray], rate_window_s: float = 20.0
+    columns: Mapping[str, np.ndarray], rate_window_s: float = 20.0, t_from_switch_on: bool = False
 ) -> dict[str, np.ndarray]:
     """Add the derived atoms a model may use: ``t_on`` [s] and ``dtemp`` [degC/s].
 
-    ``t_on`` is the time since the first sample of each session (switch-on). ``dtemp`` is the
-    temperature rate from a least-squares slope over a centred window of ``rate_window_s``,
+    ``t_on`` is the time since the first sample of each session (switch-on), or ``t`` itself when
+    ``t_from_switch_on`` says the log's time is the unit's time since switch-on (a link recording,
+    metadata ``t_origin: switch_on``), which a capture started late would otherwise shift. ``dtemp``
+    is the temperature rate from a least-squares slope over a centred window of ``rate_window_s``,
     computed per session so that a switch-on never produces a spurious step in the rate.
     """
     out = dict(columns)
@@ -177,7 +188,7 @@ def derived_columns(
     for s in np.unique(session):
         idx = np.flatnonzero(session == s)
         ts = t[idx]
-        t_on[idx] = ts - ts[0]
+        t_on[idx] = ts if t_from_switch_on else ts - ts[0]
         if has_temp and idx.size > 2:
             dtemp[idx] = _windowed_slope(ts, np.asarray(columns["temp"])[idx], rate_window_s)
     out["t_on"] = t_on

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.logformat import LogData
+from gyrocal.model.terms import T_ORIGIN_KEY
 from gyrocal.protocol.messages import CoeffReport, Hello, Sample
 
 FIELDS = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")
@@ -32,7 +33,7 @@ def messages_to_log(messages: Iterable[Any], source: str, stats: Mapping[str, in
     """Build LogData from unit messages in stream order (samples in deg/s, g, degC, s)."""
     rows: list[tuple[float, ...]] = []
     chunks: list[np.ndarray] = []
-    meta: dict[str, str] = {}
+    meta: dict[str, str] = {T_ORIGIN_KEY: "switch_on"}  # t is the unit's time since switch-on
     session = -1
     unit: tuple[int, int] | None = None
     last_seq: int | None = None

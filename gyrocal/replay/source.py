@@ -7,7 +7,8 @@ has them) followed by its samples, with ``seq`` counting from 0 at the switch-on
 the set the unit held comes from the ``applied_*`` metadata, else the unit held none. Its ``t`` is
 sent as the unit time a unit sends, since the switch-on: the log's ``t`` less that of the session's
 first sample (as the analysis takes ``t_on``), so a warm-up term means the same to the replayed unit,
-the daemon and `gyrocal analyze`.
+the daemon and `gyrocal analyze`; unless the metadata says ``t_origin: switch_on`` (a converted link
+recording), whose ``t`` is the unit's own.
 
 Sample blocks are ``SAMPLE_DTYPE`` arrays (the ring's records, rx = 0) of at most ``BLOCK`` samples.
 """
@@ -25,6 +26,7 @@ import numpy as np
 from gyrocal.daemon.ring import SAMPLE_DTYPE
 from gyrocal.errors import LogFormatError, ProtocolError
 from gyrocal.logformat import LogData
+from gyrocal.model.terms import from_switch_on
 from gyrocal.protocol.messages import CoeffReport, Hello, Sample
 from gyrocal.readers import ReadOptions, detect_kind, read_any
 
@@ -193,7 +195,8 @@ def _stream_events(stream: Any) -> Iterator[Event]:
             if i1 <= i0:
                 continue
             if session is None or s[i0] != session:
-                session, k, seq, t0 = float(s[i0]), k + 1, 0, float(cols["t"][i0])
+                session, k, seq = float(s[i0]), k + 1, 0
+                t0 = 0.0 if from_switch_on(stream.metadata) else float(cols["t"][i0])
                 yield "msg", _hello(stream.metadata, k, cols["t"][i0:i1])
             for j0 in range(i0, i1, BLOCK):
                 j1 = min(j0 + BLOCK, i1)
@@ -210,6 +213,7 @@ def _log_events(log: LogData) -> Iterator[Event]:
     starts = np.concatenate(([0], cuts)) if len(log) else np.zeros(0, dtype=int)
     ends = np.concatenate((cuts, [len(log)])) if len(log) else np.zeros(0, dtype=int)
     cols = {c: log[c] for c in ("t", "wx", "wy", "wz", "ax", "ay", "az")}
+    unit_time = from_switch_on(meta)  # a converted link capture: t is the unit's already
     if log.has("temp"):
         cols["temp"] = log["temp"]
     for k, (i0, i1) in enumerate(zip(starts, ends, strict=True)):
@@ -219,4 +223,4 @@ def _log_events(log: LogData) -> Iterator[Event]:
                            int(min(round(rate), 65535)))
         for j0 in range(i0, i1, BLOCK):
             j1 = min(j0 + BLOCK, i1)
-            yield "samples", _block(cols, j0, j1, j0 - i0, float(t[0]))
+            yield "samples", _block(cols, j0, j1, j0 - i0, 0.0 if unit_time else float(t[0]))

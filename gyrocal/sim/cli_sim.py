@@ -194,7 +194,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.record:
             meta = {"source": "gyrocal sim", "serial": args.serial, "seed": args.seed, "rate_hz": args.rate,
-                    "sensor": "virtual strapdown unit"}
+                    "sensor": "virtual strapdown unit", "t_origin": "switch_on"}
             try:
                 recorder = Recorder(args.record, meta)
             except OSError as err:
