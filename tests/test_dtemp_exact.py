@@ -114,7 +114,8 @@ def test_a_link_that_drops_3_s_during_the_warm_up_does_not_spoil_the_push(tmp_pa
     """The daemon hears the unit from switch-on, then the link is down from 8 to 11 s.
 
     With the gap counted exact, the first push cut this unit 6.7 / 16.8 / 7.6x (seeds 1-3: 6.7-65x;
-    in process, on 830d766); the seconds around the gap then stay out of learning for 20 s.
+    benchmarks/bench_late_start.py at 24d9300); the seconds around the gap now stay out of learning
+    for 20 s.
     """
     cfg = load_config(None, {"state_dir": str(tmp_path / "state"),
                              "control_socket": str(tmp_path / "c.sock")})

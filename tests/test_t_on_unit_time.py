@@ -5,7 +5,7 @@ sections 4 and 6). On a vehicle the IMU streams from power-on while the navigati
 booting, and systemd restarts a daemon mid-session; the daemon's first sample is then D seconds
 after the switch-on. A daemon that counted t_on from its own first sample saw exp(D/TAU) times the
 unit's term, learnt the warm-up scaled by exp(-D/TAU) and pushed it: with TAU 300 s and D 150 s
-it pushed 0.52-0.70 of the warm-up (this test's unit on 24d9300, seeds 1-3, all axes), and every
+it pushed 0.52-0.70 of the warm-up (benchmarks/bench_late_start.py at 24d9300, seeds 1-3), and every
 later switch-on kept 30-48 % of its warm-up. Counted from the switch-on: 0.86-1.16.
 """
 

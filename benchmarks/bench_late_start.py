@@ -1,0 +1,196 @@
+"""A daemon that does not hear the unit from its first sample: what it learns, per case.
+
+    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,pty] [--seeds 3]
+        [--runs 4] [--json]
+
+In simulated time through the daemon's own Session (tests/grade_harness.py), deterministic per seed.
+On a vehicle the IMU streams from power-on while the navigation computer boots, systemd restarts a
+daemon mid-session, and a link drops and comes back within a switch-on. The unit evaluates its set
+on its own time since switch-on and its own dT/dt rule (docs/protocol.md, sections 4 and 6); the
+daemon must rebuild both from what it heard.
+
+- ``warmup``: the demo unit (sim/truth.py) plus a warm-up of 0.03 / -0.02 / 0.025 deg/s,
+  exp(-t_on/300 s); the daemon's terms are seed 000's and exp(-t_on/300); it starts 150 s after the
+  unit. Figure: the pushed warm-up coefficient over the true one, per axis (1 is right).
+- ``dtemp``: the independent fibre unit's physics (tests/indep/inprocess.py, 400 Hz) holding a factory
+  set on terms 0x549E with 0.02 / -0.015 / 0.01 deg/s per degC/s of dT/dt, in its warm-up; the
+  daemon starts 0, 0.25, 0.5, 0.75 or 2.3 s late. Figure: the true drift cut of the first push
+  over the unit's poses, per axis.
+- ``gap``: the same unit and daemon from switch-on, with the link down for 3 s from 8 s, 0.3 s from
+  8 s, or 1 s from 15 s. Figure: the cut, per axis.
+
+- ``pty`` (not in the default cases: real time, about a minute a run): the case of
+  tests/test_indep_unit.py::test_held_temperature_rate_set_is_reconstructed, run ``--runs`` times:
+  the independent unit as a process on a pty with that factory set, the real daemon opening the port
+  as soon as it is up, which is a part of a second into the unit's first second. Figure: the cut of
+  the acked set per axis, from the unit's own truth.
+
+Each row also gives the samples the unit had sent at the push and ``dtemp_inexact_samples``.
+To compare with an older commit, copy this file into a worktree of it and run it there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gyrocal.daemon.config import load_config  # noqa: E402
+from gyrocal.daemon.store import CalibrationStore  # noqa: E402
+from gyrocal.model.terms import SEED000_TERMS  # noqa: E402
+from gyrocal.protocol import termsets  # noqa: E402
+from gyrocal.protocol.messages import CoeffWrite  # noqa: E402
+from gyrocal.sim.truth import Effects, TruthModel  # noqa: E402
+from gyrocal.sim.unit import VirtualUnit  # noqa: E402
+from tests.grade_harness import GradeRun  # noqa: E402
+from tests.indep.inprocess import IndepPhysicsUnit  # noqa: E402
+
+RATE_HZ = 400.0
+WARMUP_DPS = np.array([0.03, -0.02, 0.025])
+WARMUP_TAU_S = 300.0
+DTEMP_DPS_PER_CPS = [0.02, -0.015, 0.01]
+
+
+def _cfg(tmp: Path, **overrides: Any):  # noqa: ANN202 (DaemonConfig)
+    return load_config(None, {"state_dir": str(tmp / "state"), "control_socket": str(tmp / "c.sock"),
+                              **overrides})
+
+
+def warmup(seed: int, late_s: float = 150.0) -> dict[str, Any]:
+    terms = [*SEED000_TERMS, f"exp(-t_on/{WARMUP_TAU_S:g})"]
+    termsets.register(terms)
+    truth = TruthModel(effects=Effects(warmup_dps=WARMUP_DPS, warmup_tau_s=WARMUP_TAU_S))
+    with tempfile.TemporaryDirectory() as d:
+        run = GradeRun.make(Path(d), rate_hz=200.0, seed=seed, truth=truth, estimator={"terms": terms})
+        run.switch_on()
+        run.unit.render(int(late_s * 200.0))
+        run.run(400.0, lambda r: bool(r.pushes) and r.unit.applied is not None
+                and len(r.unit.applied.names) == len(terms))
+        a = run.unit.applied
+        row: dict[str, Any] = {"case": "warmup", "seed": seed, "late_s": late_s}
+        if a is None or len(a.names) != len(terms):
+            return row | {"pushed": False}
+        ratio = a.coeffs_dps[:, -1] / WARMUP_DPS
+        return row | {"pushed": True, "push_s": round(run.pushes[0]["t"], 2),
+                      "learnt_over_true": dict(zip("xyz", ratio.round(3).tolist(), strict=True))}
+
+
+def _fibre(tmp: Path, seed: int) -> tuple[GradeRun, IndepPhysicsUnit]:
+    unit = IndepPhysicsUnit("fibre", RATE_HZ, seed, 0x5EED0000 + seed)
+    coeffs = np.zeros((3, 14))
+    coeffs[:, 0] = 0.01
+    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
+    coeffs[:, 12] = DTEMP_DPS_PER_CPS
+    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
+    cfg = _cfg(tmp)
+    return GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), RATE_HZ), unit
+
+
+def _pushed(run: GradeRun, unit: IndepPhysicsUnit) -> bool:
+    return bool(run.pushes) and unit.applied is not None and unit.applied.version > 7
+
+
+def _cut_row(run: GradeRun, unit: IndepPhysicsUnit, row: dict[str, Any]) -> dict[str, Any]:
+    assert run.session is not None
+    row |= {"pushed": _pushed(run, unit), "samples_at_push": unit.session_index,
+            "dtemp_inexact_samples": run.session.status().get("dtemp_inexact_samples")}
+    if row["pushed"]:
+        before, after = unit.drift_rms_dps()
+        row["cut"] = dict(zip("xyz", (before / after).round(1).tolist(), strict=True))
+    return row
+
+
+def dtemp(seed: int, late_s: float) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as d:
+        run, unit = _fibre(Path(d), seed)
+        run.switch_on()
+        unit.render(int(late_s * RATE_HZ))  # sent before the daemon listened
+        run.run(150.0, lambda r: _pushed(r, unit))
+        return _cut_row(run, unit, {"case": "dtemp", "seed": seed, "late_s": late_s})
+
+
+def gap(seed: int, at_s: float, down_s: float) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as d:
+        run, unit = _fibre(Path(d), seed)
+        run.switch_on()
+        run.run(at_s)
+        unit.render(int(down_s * RATE_HZ))  # lost on the link
+        run.now += down_s
+        run.run(150.0, lambda r: _pushed(r, unit))
+        return _cut_row(run, unit, {"case": "gap", "seed": seed, "at_s": at_s, "down_s": down_s})
+
+
+def pty(run: int) -> dict[str, Any]:
+    from tests.indep.wire import CoeffSet
+    from tests.test_indep_unit import Daemon, IndepUnit, _acked, wait_for
+
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        coeffs = np.zeros((3, 14))
+        coeffs[:, 0] = 0.01
+        coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
+        coeffs[:, 12] = DTEMP_DPS_PER_CPS
+        flash = {"boot": 4, "set": CoeffSet(7, 0x549E, coeffs).encode().hex()}
+        (tmp / "flash.json").write_text(json.dumps(flash))
+        unit = IndepUnit(tmp, "--link", "pty", "--rate", "400", "--grade", "fibre")
+        daemon = Daemon(tmp, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+        try:
+            ok = wait_for(lambda: _acked(unit, daemon, 5), timeout_s=120.0, poll_s=0.5)
+            truth, status = unit.truth(), daemon.status()
+        finally:
+            daemon.stop()
+            unit.stop()
+    session = status.get("session", status)
+    row: dict[str, Any] = {"case": "pty", "run": run, "pushed": bool(ok),
+                           "dtemp_inexact_samples": session.get("dtemp_inexact_samples")}
+    if ok:
+        ack = [a for a in truth["acks"] if a["boot"] == 5][-1]
+        row["samples_at_push"] = ack["seq_first"]
+        row["cut"] = {a: round(ack["rms_before"][a] / ack["rms_after"][a], 1) for a in "xyz"}
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", default="warmup,dtemp,gap")
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--runs", type=int, default=4, help="runs of the pty case")
+    p.add_argument("--json", action="store_true", help="print one JSON document instead of lines")
+    args = p.parse_args(argv)
+    import logging
+
+    logging.disable(logging.WARNING)  # the session's refusals; the rows say what happened
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    seeds = range(1, args.seeds + 1)
+    cases = args.cases.split(",")
+    for seed in seeds:
+        if "warmup" in cases:
+            rows.append(warmup(seed))
+        if "dtemp" in cases:
+            rows += [dtemp(seed, late) for late in (0.0, 0.25, 0.5, 0.75, 2.3)]
+        if "gap" in cases:
+            rows += [gap(seed, at, down) for at, down in ((8.0, 3.0), (8.0, 0.3), (15.0, 1.0))]
+        if not args.json:
+            for r in rows[-(("warmup" in cases) + 5 * ("dtemp" in cases) + 3 * ("gap" in cases)):]:
+                print(json.dumps(r), flush=True)
+    for run in range(args.runs if "pty" in cases else 0):
+        rows.append(pty(run))
+        if not args.json:
+            print(json.dumps(rows[-1]), flush=True)
+    if args.json:
+        print(json.dumps({"rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
