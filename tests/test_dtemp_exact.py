@@ -11,6 +11,7 @@ fibre unit with a factory dT/dt set, a daemon that started 2.3 s after the unit 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -110,7 +111,8 @@ def test_a_gap_in_the_stream_leaves_the_window_in_part_for_20_s_but_a_lost_frame
     np.testing.assert_allclose(d[ok], truth[ok], rtol=0, atol=1e-4)
 
 
-def test_a_link_that_drops_3_s_during_the_warm_up_does_not_spoil_the_push(tmp_path: Path) -> None:
+def test_a_link_that_drops_3_s_during_the_warm_up_does_not_spoil_the_push(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """The daemon hears the unit from switch-on, then the link is down from 8 to 11 s.
 
     With the gap counted exact, the first push cut this unit 6.7 / 16.8 / 7.6x (seeds 1-3: 6.7-65x;
@@ -126,6 +128,7 @@ def test_a_link_that_drops_3_s_during_the_warm_up_does_not_spoil_the_push(tmp_pa
     coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
     unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
     run = GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), 400.0)
+    caplog.set_level(logging.INFO, logger="gyrocal.session")
     run.switch_on()
     run.run(8.0)
     unit.render(int(3.0 * 400))  # lost on the link
@@ -135,3 +138,5 @@ def test_a_link_that_drops_3_s_during_the_warm_up_does_not_spoil_the_push(tmp_pa
     before, after = unit.drift_rms_dps()
     assert np.all(after * 10 <= before), before / after
     assert run.session.status()["dtemp_inexact_samples"] > 0
+    said = [r.getMessage() for r in caplog.records if "set aside" in r.getMessage()]
+    assert len(said) == 1 and "from unit time 11" in said[0], said  # one line for the one gap

@@ -211,6 +211,7 @@ class Session(RecoveryMixin):
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
+        self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -290,6 +291,14 @@ class Session(RecoveryMixin):
             # on 5 of 8 seeds and cut 2.8-8x on the rest: tests/test_dtemp_exact.py)
             still = still & exact
             self.inexact_samples += int((~exact).sum())
+            if not self._inexact_said:  # one line per stretch: a late start, a link gap
+                self._inexact_said = True
+                log.info("unit %s: still samples from unit time %.1f s set aside for up to %d s: this "
+                         "host did not hear the unit from switch-on or lost a part of its stream, so "
+                         "it cannot rebuild the unit's dT/dt yet", self.hello.serial,
+                         float(samples["t"][int(np.argmin(exact))]), TempRate.WINDOW + 1)
+        elif exact.all():
+            self._inexact_said = False
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
