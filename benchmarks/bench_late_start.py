@@ -1,6 +1,6 @@
 """A daemon that does not hear the unit from its first sample: what it learns, per case.
 
-    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,pty] [--seeds 3]
+    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,pty,can] [--seeds 3]
         [--runs 4] [--json]
 
 In simulated time through the daemon's own Session (tests/grade_harness.py), deterministic per seed.
@@ -19,11 +19,12 @@ daemon must rebuild both from what it heard.
 - ``gap``: the same unit and daemon from switch-on, with the link down for 3 s from 8 s, 0.3 s from
   8 s, or 1 s from 15 s. Figure: the cut, per axis.
 
-- ``pty`` (not in the default cases: real time, about a minute a run): the case of
+- ``pty`` and ``can`` (not in the default cases: real time, about a minute a run): the case of
   tests/test_indep_unit.py::test_held_temperature_rate_set_is_reconstructed, run ``--runs`` times:
   the independent unit as a process on a pty with that factory set, the real daemon opening the port
   as soon as it is up, which is a part of a second into the unit's first second. Figure: the cut of
-  the acked set per axis, from the unit's own truth.
+  the acked set per axis, from the unit's own truth. ``can``: the same on CAN (python-can
+  ``udp_multicast``, node 3), where the daemon also starts after the unit.
 
 Each row also gives the samples the unit had sent at the push and ``dtemp_inexact_samples``.
 To compare with an older commit, copy this file into a worktree of it and run it there.
@@ -129,8 +130,9 @@ def gap(seed: int, at_s: float, down_s: float) -> dict[str, Any]:
         return _cut_row(run, unit, {"case": "gap", "seed": seed, "at_s": at_s, "down_s": down_s})
 
 
-def pty(run: int) -> dict[str, Any]:
+def live(run: int, link: str = "pty") -> dict[str, Any]:
     from tests.indep.wire import CoeffSet
+    from tests.sim_helpers import MULTICAST_GROUP, free_udp_port
     from tests.test_indep_unit import Daemon, IndepUnit, _acked, wait_for
 
     with tempfile.TemporaryDirectory() as d:
@@ -141,8 +143,15 @@ def pty(run: int) -> dict[str, Any]:
         coeffs[:, 12] = DTEMP_DPS_PER_CPS
         flash = {"boot": 4, "set": CoeffSet(7, 0x549E, coeffs).encode().hex()}
         (tmp / "flash.json").write_text(json.dumps(flash))
-        unit = IndepUnit(tmp, "--link", "pty", "--rate", "400", "--grade", "fibre")
-        daemon = Daemon(tmp, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+        if link == "pty":
+            unit = IndepUnit(tmp, "--link", "pty", "--rate", "400", "--grade", "fibre")
+            daemon = Daemon(tmp, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+        else:
+            port = free_udp_port()
+            unit = IndepUnit(tmp, "--link", "can", "--node", "3", "--rate", "400", "--grade", "fibre",
+                             "--can-channel", MULTICAST_GROUP, "--can-port", str(port))
+            bus = {"interface": "udp_multicast", "channel": MULTICAST_GROUP, "port": port}
+            daemon = Daemon(tmp, {"kind": "can", "can_node_id": 3, "can": bus})
         try:
             ok = wait_for(lambda: _acked(unit, daemon, 5), timeout_s=120.0, poll_s=0.5)
             truth, status = unit.truth(), daemon.status()
@@ -150,7 +159,7 @@ def pty(run: int) -> dict[str, Any]:
             daemon.stop()
             unit.stop()
     session = status.get("session", status)
-    row: dict[str, Any] = {"case": "pty", "run": run, "pushed": bool(ok),
+    row: dict[str, Any] = {"case": link, "run": run, "pushed": bool(ok),
                            "dtemp_inexact_samples": session.get("dtemp_inexact_samples")}
     if ok:
         ack = [a for a in truth["acks"] if a["boot"] == 5][-1]
@@ -183,10 +192,11 @@ def main(argv: list[str] | None = None) -> int:
         if not args.json:
             for r in rows[-(("warmup" in cases) + 5 * ("dtemp" in cases) + 3 * ("gap" in cases)):]:
                 print(json.dumps(r), flush=True)
-    for run in range(args.runs if "pty" in cases else 0):
-        rows.append(pty(run))
-        if not args.json:
-            print(json.dumps(rows[-1]), flush=True)
+    for link in ("pty", "can"):
+        for run in range(args.runs if link in cases else 0):
+            rows.append(live(run, link))
+            if not args.json:
+                print(json.dumps(rows[-1]), flush=True)
     if args.json:
         print(json.dumps({"rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}, indent=1))
     return 0
