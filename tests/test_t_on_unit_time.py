@@ -11,10 +11,13 @@ later switch-on kept 30-48 % of its warm-up. Counted from the switch-on: 0.86-1.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from gyrocal.daemon.ring import SAMPLE_DTYPE
 from gyrocal.model.terms import SEED000_TERMS
 from gyrocal.protocol import termsets
 from gyrocal.sim.truth import Effects, TruthModel
@@ -38,3 +41,19 @@ def test_a_daemon_that_starts_150_s_after_the_unit_learns_the_whole_warm_up(tmp_
     learnt = applied.coeffs_dps[:, -1]  # deg/s per unit of exp(-t_on/300)
     # counted from the daemon's first sample this is exp(-150/300) = 0.61 of the truth
     assert np.all(np.abs(learnt / WARMUP_DPS - 1) < 0.25), learnt / WARMUP_DPS
+
+
+def test_a_unit_whose_clock_does_not_start_at_switch_on_gets_one_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """t_on is the unit's time; a unit stamping its seq 0 at 5000 s breaks that, and is told so once."""
+    run = GradeRun.make(tmp_path, rate_hz=RATE_HZ, seed=1)
+    run.switch_on()
+    caplog.set_level(logging.WARNING, logger="gyrocal.session")
+    for first in (0, 100):  # two batches: the warning is for the session's first one only
+        block = np.zeros(100, dtype=SAMPLE_DTYPE)
+        block["seq"] = np.arange(first, first + 100)
+        block["t"] = 5000.0 + block["seq"] / RATE_HZ
+        block["az"] = 1.0
+        run.session.feed(block, np.ones(100, dtype=bool), 1.0)
+    said = [r.getMessage() for r in caplog.records if "counts from switch-on" in r.getMessage()]
+    assert len(said) == 1 and "stamped 5000.0 s" in said[0], said

@@ -136,6 +136,10 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
 DPH = 3600.0
 SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
 """Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
+FIRST_SAMPLE_MAX_S = 60.0
+"""[s] A unit's first sample after switch-on (seq 0) stamped later than this has a clock that does not
+count from switch-on (an uptime, a clock kept across power cycles): t_on is that unit time, so one
+WARNING says that its warm-up terms cannot fit."""
 WANDER_GAIN_Z = 3.0
 """A first set on a unit whose bias wanders passes validation when its held-out gain is this many
 standard errors, paired per block (one-sided p about 0.001 for independent blocks; the blocks of one
@@ -273,6 +277,11 @@ class Session(RecoveryMixin):
         # dtemp follows the unit's rule from the session's first sample, also while the unit's set is
         # still being read: a copy started later is not the unit's for WINDOW seconds (TempRate.exact)
         dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"], samples["seq"])
+        if self.samples == samples.size and int(samples["seq"][0]) == 0 \
+                and float(samples["t"][0]) > FIRST_SAMPLE_MAX_S:
+            log.warning("unit %s: its first sample (seq 0) is stamped %.1f s, but unit time counts "
+                        "from switch-on (protocol.md, section 2): terms in t_on (a warm-up) will not "
+                        "fit this unit", self.hello.serial, float(samples["t"][0]))
         if self.applied is None:
             return
         # t_on is the unit's time since switch-on, as the unit evaluates its set (protocol.md,
