@@ -18,7 +18,6 @@ daemon must rebuild both from what it heard.
   over the unit's poses, per axis.
 - ``gap``: the same unit and daemon from switch-on, with the link down for 3 s from 8 s, 0.3 s from
   8 s, or 1 s from 15 s. Figure: the cut, per axis.
-
 - ``pty`` and ``can`` (not in the default cases: real time, about a minute a run): the case of
   tests/test_indep_unit.py::test_held_temperature_rate_set_is_reconstructed, run ``--runs`` times:
   the independent unit as a process on a pty with that factory set, the real daemon opening the port
@@ -61,9 +60,8 @@ WARMUP_TAU_S = 300.0
 DTEMP_DPS_PER_CPS = [0.02, -0.015, 0.01]
 
 
-def _cfg(tmp: Path, **overrides: Any):  # noqa: ANN202 (DaemonConfig)
-    return load_config(None, {"state_dir": str(tmp / "state"), "control_socket": str(tmp / "c.sock"),
-                              **overrides})
+def _cfg(tmp: Path):  # noqa: ANN202 (DaemonConfig)
+    return load_config(None, {"state_dir": str(tmp / "state"), "control_socket": str(tmp / "c.sock")})
 
 
 def warmup(seed: int, late_s: float = 150.0) -> dict[str, Any]:
@@ -85,13 +83,18 @@ def warmup(seed: int, late_s: float = 150.0) -> dict[str, Any]:
                       "learnt_over_true": dict(zip("xyz", ratio.round(3).tolist(), strict=True))}
 
 
-def _fibre(tmp: Path, seed: int) -> tuple[GradeRun, IndepPhysicsUnit]:
-    unit = IndepPhysicsUnit("fibre", RATE_HZ, seed, 0x5EED0000 + seed)
+def _factory_set() -> np.ndarray:
+    """The factory set on terms 0x549E (3, 14) [deg/s per term unit]: tests/test_dtemp_exact.py's."""
     coeffs = np.zeros((3, 14))
     coeffs[:, 0] = 0.01
     coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
     coeffs[:, 12] = DTEMP_DPS_PER_CPS
-    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
+    return coeffs
+
+
+def _fibre(tmp: Path, seed: int) -> tuple[GradeRun, IndepPhysicsUnit]:
+    unit = IndepPhysicsUnit("fibre", RATE_HZ, seed, 0x5EED0000 + seed)
+    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, _factory_set().tolist()))
     cfg = _cfg(tmp)
     return GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), RATE_HZ), unit
 
@@ -137,11 +140,7 @@ def live(run: int, link: str = "pty") -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        coeffs = np.zeros((3, 14))
-        coeffs[:, 0] = 0.01
-        coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
-        coeffs[:, 12] = DTEMP_DPS_PER_CPS
-        flash = {"boot": 4, "set": CoeffSet(7, 0x549E, coeffs).encode().hex()}
+        flash = {"boot": 4, "set": CoeffSet(7, 0x549E, _factory_set()).encode().hex()}
         (tmp / "flash.json").write_text(json.dumps(flash))
         if link == "pty":
             unit = IndepUnit(tmp, "--link", "pty", "--rate", "400", "--grade", "fibre")
@@ -172,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", default="warmup,dtemp,gap")
     p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--runs", type=int, default=4, help="runs of the pty case")
+    p.add_argument("--runs", type=int, default=4, help="runs of the pty and can cases")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of lines")
     args = p.parse_args(argv)
     import logging
