@@ -57,7 +57,7 @@ class ReplayUnit:
         self.pushes: list[dict[str, Any]] = []
         self.synthesized_hello = False
         self.unit_time_s = 0.0
-        self._t0: float | None = None
+        self._sampled = False  # samples came in this switch-on (before any HELLO: recorded after it)
         self._trate = TempRate()  # dtemp by the protocol's rule (section 6), from the recording's start
         self._spec_key: tuple[tuple[str, ...], tuple[str, ...]] | None = None
         self._spec_ours: TermSpec | None = None
@@ -69,7 +69,7 @@ class ReplayUnit:
         if isinstance(msg, Hello):
             h = self.hello
             if h is None or (msg.serial, msg.boot_count) != (h.serial, h.boot_count):
-                self._t0 = None
+                self._sampled = False
                 self._trate = TempRate()
             self.hello = msg
             return True
@@ -81,7 +81,7 @@ class ReplayUnit:
     def answer(self, msg: Any) -> list[Any]:
         """What the unit sends back to a host message (possibly nothing)."""
         if isinstance(msg, HelloRequest):
-            if self.hello is None and self._t0 is not None:
+            if self.hello is None and self._sampled:
                 # samples came first: recorded after the switch-on, no HELLO to come. An anonymous unit
                 self.hello = Hello(0, "0.0.0", 0)
                 self.synthesized_hello = True
@@ -119,8 +119,7 @@ class ReplayUnit:
         """The block as this unit would send it: re-compensated once a pushed set replaced the recorded."""
         if block.size == 0:
             return block
-        if self._t0 is None:
-            self._t0 = float(block["t"][0])
+        self._sampled = True
         self.unit_time_s = float(block["t"][-1])
         dtemp = self._trate.update(block["t"], block["temp"])  # followed whether or not a set uses it
         if self.ours is None:  # the recorded output stands
