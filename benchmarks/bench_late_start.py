@@ -44,24 +44,21 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gyrocal.daemon.config import load_config  # noqa: E402
-from gyrocal.daemon.store import CalibrationStore  # noqa: E402
 from gyrocal.model.terms import SEED000_TERMS  # noqa: E402
 from gyrocal.protocol import termsets  # noqa: E402
-from gyrocal.protocol.messages import CoeffWrite  # noqa: E402
 from gyrocal.sim.truth import Effects, TruthModel  # noqa: E402
-from gyrocal.sim.unit import VirtualUnit  # noqa: E402
 from tests.grade_harness import GradeRun  # noqa: E402
-from tests.indep.inprocess import IndepPhysicsUnit  # noqa: E402
+from tests.indep.inprocess import (  # noqa: E402
+    FACTORY_VERSION,
+    IndepPhysicsUnit,
+    factory_dtemp_set,
+    held_dtemp_run,
+    replaced_factory_set,
+)
 
 RATE_HZ = 400.0
 WARMUP_DPS = np.array([0.03, -0.02, 0.025])
 WARMUP_TAU_S = 300.0
-DTEMP_DPS_PER_CPS = [0.02, -0.015, 0.01]
-
-
-def _cfg(tmp: Path):  # noqa: ANN202 (DaemonConfig)
-    return load_config(None, {"state_dir": str(tmp / "state"), "control_socket": str(tmp / "c.sock")})
 
 
 def warmup(seed: int, late_s: float = 150.0) -> dict[str, Any]:
@@ -83,29 +80,9 @@ def warmup(seed: int, late_s: float = 150.0) -> dict[str, Any]:
                       "learnt_over_true": dict(zip("xyz", ratio.round(3).tolist(), strict=True))}
 
 
-def _factory_set() -> np.ndarray:
-    """The factory set on terms 0x549E (3, 14) [deg/s per term unit]: tests/test_dtemp_exact.py's."""
-    coeffs = np.zeros((3, 14))
-    coeffs[:, 0] = 0.01
-    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
-    coeffs[:, 12] = DTEMP_DPS_PER_CPS
-    return coeffs
-
-
-def _fibre(tmp: Path, seed: int) -> tuple[GradeRun, IndepPhysicsUnit]:
-    unit = IndepPhysicsUnit("fibre", RATE_HZ, seed, 0x5EED0000 + seed)
-    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, _factory_set().tolist()))
-    cfg = _cfg(tmp)
-    return GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), RATE_HZ), unit
-
-
-def _pushed(run: GradeRun, unit: IndepPhysicsUnit) -> bool:
-    return bool(run.pushes) and unit.applied is not None and unit.applied.version > 7
-
-
 def _cut_row(run: GradeRun, unit: IndepPhysicsUnit, row: dict[str, Any]) -> dict[str, Any]:
     assert run.session is not None
-    row |= {"pushed": _pushed(run, unit), "samples_at_push": unit.session_index,
+    row |= {"pushed": replaced_factory_set(run), "samples_at_push": unit.session_index,
             "dtemp_inexact_samples": run.session.status().get("dtemp_inexact_samples")}
     if row["pushed"]:
         before, after = unit.drift_rms_dps()
@@ -115,21 +92,21 @@ def _cut_row(run: GradeRun, unit: IndepPhysicsUnit, row: dict[str, Any]) -> dict
 
 def dtemp(seed: int, late_s: float) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as d:
-        run, unit = _fibre(Path(d), seed)
+        run, unit = held_dtemp_run(Path(d), seed, RATE_HZ)
         run.switch_on()
         unit.render(int(late_s * RATE_HZ))  # sent before the daemon listened
-        run.run(150.0, lambda r: _pushed(r, unit))
+        run.run(150.0, replaced_factory_set)
         return _cut_row(run, unit, {"case": "dtemp", "seed": seed, "late_s": late_s})
 
 
 def gap(seed: int, at_s: float, down_s: float) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as d:
-        run, unit = _fibre(Path(d), seed)
+        run, unit = held_dtemp_run(Path(d), seed, RATE_HZ)
         run.switch_on()
         run.run(at_s)
         unit.render(int(down_s * RATE_HZ))  # lost on the link
         run.now += down_s
-        run.run(150.0, lambda r: _pushed(r, unit))
+        run.run(150.0, replaced_factory_set)
         return _cut_row(run, unit, {"case": "gap", "seed": seed, "at_s": at_s, "down_s": down_s})
 
 
@@ -140,7 +117,7 @@ def live(run: int, link: str = "pty") -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        flash = {"boot": 4, "set": CoeffSet(7, 0x549E, _factory_set()).encode().hex()}
+        flash = {"boot": 4, "set": CoeffSet(FACTORY_VERSION, 0x549E, factory_dtemp_set()).encode().hex()}
         (tmp / "flash.json").write_text(json.dumps(flash))
         if link == "pty":
             unit = IndepUnit(tmp, "--link", "pty", "--rate", "400", "--grade", "fibre")

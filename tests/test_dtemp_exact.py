@@ -17,13 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gyrocal.daemon.config import load_config
-from gyrocal.daemon.store import CalibrationStore
-from gyrocal.protocol.messages import CoeffWrite
 from gyrocal.protocol.termsets import TempRate
-from gyrocal.sim.unit import VirtualUnit
-from tests.grade_harness import GradeRun
-from tests.indep.inprocess import IndepPhysicsUnit
+from tests.indep.inprocess import held_dtemp_run, replaced_factory_set
 from tests.indep.truth import temperature
 
 
@@ -71,19 +66,11 @@ def test_a_daemon_that_starts_late_on_a_unit_with_a_dtemp_set_still_cuts_10x(tmp
     unit's first second runs. When any part of second 0 counted as exact, this unit's first push cut
     16.6 / 7.3 / 40x at 0.75 s (seeds 1-3 at 0.25-0.75 s: 5.7-149x; now 35-180x).
     """
-    cfg = load_config(None, {"state_dir": str(tmp_path / "state"),
-                             "control_socket": str(tmp_path / "c.sock")})
-    unit = IndepPhysicsUnit("fibre", 400.0, 1, 0x5EED0001)
-    coeffs = np.zeros((3, 14))
-    coeffs[:, 0] = 0.01
-    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
-    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
-    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
-    run = GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), 400.0)
+    run, unit = held_dtemp_run(tmp_path, 1)
     run.switch_on()
     unit.render(int(late_s * 400))  # sent before the daemon listened
-    run.run(150.0, lambda r: bool(r.pushes) and unit.applied is not None and unit.applied.version > 7)
-    assert run.pushes and unit.applied is not None and unit.applied.version > 7, run.session.reason
+    run.run(150.0, replaced_factory_set)
+    assert replaced_factory_set(run), run.session.reason
     before, after = unit.drift_rms_dps()
     assert np.all(after * 10 <= before), before / after
     assert run.session.status()["dtemp_inexact_samples"] > 0
@@ -119,22 +106,14 @@ def test_a_link_that_drops_3_s_during_the_warm_up_does_not_spoil_the_push(
     benchmarks/bench_late_start.py at 24d9300); the seconds around the gap now stay out of learning
     for 20 s.
     """
-    cfg = load_config(None, {"state_dir": str(tmp_path / "state"),
-                             "control_socket": str(tmp_path / "c.sock")})
-    unit = IndepPhysicsUnit("fibre", 400.0, 2, 0x5EED0002)
-    coeffs = np.zeros((3, 14))
-    coeffs[:, 0] = 0.01
-    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
-    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
-    unit.applied = VirtualUnit._build(CoeffWrite(7, 0x549E, coeffs.tolist()))
-    run = GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), 400.0)
+    run, unit = held_dtemp_run(tmp_path, 2)
     caplog.set_level(logging.INFO, logger="gyrocal.session")
     run.switch_on()
     run.run(8.0)
     unit.render(int(3.0 * 400))  # lost on the link
     run.now += 3.0
-    run.run(150.0, lambda r: bool(r.pushes) and unit.applied is not None and unit.applied.version > 7)
-    assert run.pushes and unit.applied is not None and unit.applied.version > 7, run.session.reason
+    run.run(150.0, replaced_factory_set)
+    assert replaced_factory_set(run), run.session.reason
     before, after = unit.drift_rms_dps()
     assert np.all(after * 10 <= before), before / after
     assert run.session.status()["dtemp_inexact_samples"] > 0

@@ -172,15 +172,10 @@ def test_fibre_grade_pty_400hz_push_and_power_cycle(tmp_path: Path) -> None:
 def test_held_temperature_rate_set_is_reconstructed(tmp_path: Path) -> None:
     """The unit comes with a factory set on terms 0x549E (dtemp in it); the daemon must add it back
     exactly (``out + C_applied @ terms``, doc sec. 6) before it learns, or the first push is poor."""
-    import numpy as np
-
+    from tests.indep.inprocess import FACTORY_VERSION, factory_dtemp_set
     from tests.indep.wire import CoeffSet
 
-    coeffs = np.zeros((3, 14))
-    coeffs[:, 0] = 0.01
-    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
-    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
-    factory = CoeffSet(7, 0x549E, coeffs)
+    factory = CoeffSet(FACTORY_VERSION, 0x549E, factory_dtemp_set())
     (tmp_path / "flash.json").write_text(json.dumps({"boot": 4, "set": factory.encode().hex()}))
     unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
     daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})

@@ -21,7 +21,7 @@ import numpy as np
 from gyrocal.daemon.config import load_config
 from gyrocal.daemon.store import CalibrationStore
 from gyrocal.model.prep import block_terms
-from gyrocal.protocol.messages import Hello
+from gyrocal.protocol.messages import CoeffWrite, Hello
 from gyrocal.sim.schedule import tumble
 from gyrocal.sim.truth import TruthModel
 from gyrocal.sim.unit import SEQ_MODULO, Chunk, VirtualUnit
@@ -96,6 +96,35 @@ class IndepPhysicsUnit(VirtualUnit):
         before, after = self.drift_rms_dps()
         return {"drift_rms_raw_dps": dict(zip("xyz", before.tolist(), strict=True)),
                 "drift_rms_compensated_dps": dict(zip("xyz", after.tolist(), strict=True))}
+
+
+FACTORY_VERSION = 7
+"""The version of the factory set below, as the unit's flash holds it."""
+
+
+def factory_dtemp_set() -> np.ndarray:
+    """A factory set on terms 0x549E (3, 14) [deg/s per term unit] whose dT/dt term the unit's truth
+    does not have: 0.02 / -0.015 / 0.01 deg/s per degC/s, besides a constant and small gravity terms.
+    The daemon must add it back with the unit's own dtemp before it learns (protocol.md, section 6)."""
+    coeffs = np.zeros((3, 14))
+    coeffs[:, 0] = 0.01
+    coeffs[:, 1:10] = np.random.default_rng(3).uniform(-0.002, 0.002, (3, 9))
+    coeffs[:, 12] = [0.02, -0.015, 0.01]  # deg/s per degC/s
+    return coeffs
+
+
+def held_dtemp_run(tmp: Path, seed: int, rate_hz: float = 400.0) -> tuple[GradeRun, IndepPhysicsUnit]:
+    """A fibre unit holding ``factory_dtemp_set`` and a session for it, not yet switched on."""
+    cfg = load_config(None, {"state_dir": str(tmp / "state"), "control_socket": str(tmp / "c.sock")})
+    unit = IndepPhysicsUnit("fibre", rate_hz, seed, 0x5EED0000 + seed)
+    unit.applied = VirtualUnit._build(CoeffWrite(FACTORY_VERSION, 0x549E, factory_dtemp_set().tolist()))
+    return GradeRun(cfg, unit, CalibrationStore(cfg.state_dir), rate_hz), unit
+
+
+def replaced_factory_set(run: GradeRun) -> bool:
+    """``GradeRun.run``'s stop: a push was acked over the factory set."""
+    a = run.unit.applied
+    return bool(run.pushes) and a is not None and a.version > FACTORY_VERSION
 
 
 def first_push(tmp: Path, grade: str, rate_hz: float, seed: int, max_s: float = 150.0,
