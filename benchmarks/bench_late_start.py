@@ -1,6 +1,6 @@
 """A daemon that does not hear the unit from its first sample: what it learns, per case.
 
-    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,pty,can] [--seeds 3]
+    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,lossy,pty,can] [--seeds 3]
         [--runs 4] [--json]
 
 In simulated time through the daemon's own Session (tests/grade_harness.py), deterministic per seed.
@@ -18,6 +18,8 @@ daemon must rebuild both from what it heard.
   over the unit's poses, per axis.
 - ``gap``: the same unit and daemon from switch-on, with the link down for 3 s from 8 s, 0.3 s from
   8 s, or 1 s from 15 s. Figure: the cut, per axis.
+- ``lossy``: the same unit and daemon from switch-on, on a link that loses a burst now and then
+  (``LOSSY``). Figure: the cut, or no push within 150 s.
 - ``pty`` and ``can`` (not in the default cases: real time, about a minute a run): the case of
   tests/test_indep_unit.py::test_held_temperature_rate_set_is_reconstructed, run ``--runs`` times:
   the independent unit as a process on a pty with that factory set, the real daemon opening the port
@@ -59,6 +61,9 @@ from tests.indep.inprocess import (  # noqa: E402
 RATE_HZ = 400.0
 WARMUP_DPS = np.array([0.03, -0.02, 0.025])
 WARMUP_TAU_S = 300.0
+LOSSY = ((0.0125, 2.0), (0.05, 5.0), (0.2, 10.0), (0.5, 15.0))
+"""(burst lost [s], every [s]) of the ``lossy`` case: 5 frames at 400 Hz every 2 s up to half a
+second every 15 s."""
 
 
 def warmup(seed: int, late_s: float = 150.0) -> dict[str, Any]:
@@ -110,6 +115,23 @@ def gap(seed: int, at_s: float, down_s: float) -> dict[str, Any]:
         return _cut_row(run, unit, {"case": "gap", "seed": seed, "at_s": at_s, "down_s": down_s})
 
 
+def lossy(seed: int, burst_s: float, every_s: float, within_s: float = 150.0) -> dict[str, Any]:
+    """The same unit and daemon from switch-on, on a link that loses ``burst_s`` of samples every
+    ``every_s`` (a USB-serial adapter that overruns, a CAN bus that is busy): the first push within
+    ``within_s`` of unit time, if any."""
+    with tempfile.TemporaryDirectory() as d:
+        run, unit = held_dtemp_run(Path(d), seed, RATE_HZ)
+        run.switch_on()
+        t = 0.0
+        while t < within_s and not replaced_factory_set(run):
+            run.run(every_s - burst_s, replaced_factory_set)
+            unit.render(int(round(burst_s * RATE_HZ)))  # lost on the link
+            run.now += burst_s
+            t += every_s
+        row = {"case": "lossy", "seed": seed, "burst_s": burst_s, "every_s": every_s}
+        return _cut_row(run, unit, row)
+
+
 def live(run: int, link: str = "pty") -> dict[str, Any]:
     from tests.indep.wire import CoeffSet
     from tests.sim_helpers import MULTICAST_GROUP, free_udp_port
@@ -146,7 +168,7 @@ def live(run: int, link: str = "pty") -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", default="warmup,dtemp,gap")
+    p.add_argument("--cases", default="warmup,dtemp,gap,lossy")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--runs", type=int, default=4, help="runs of the pty and can cases")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of lines")
@@ -165,8 +187,12 @@ def main(argv: list[str] | None = None) -> int:
             rows += [dtemp(seed, late) for late in (0.0, 0.25, 0.5, 0.75, 2.3)]
         if "gap" in cases:
             rows += [gap(seed, at, down) for at, down in ((8.0, 3.0), (8.0, 0.3), (15.0, 1.0))]
+        if "lossy" in cases:
+            rows += [lossy(seed, burst, every) for burst, every in LOSSY]
         if not args.json:
-            for r in rows[-(("warmup" in cases) + 5 * ("dtemp" in cases) + 3 * ("gap" in cases)):]:
+            shown = ("warmup" in cases) + 5 * ("dtemp" in cases) + 3 * ("gap" in cases) \
+                + len(LOSSY) * ("lossy" in cases)
+            for r in rows[-shown:]:
                 print(json.dumps(r), flush=True)
     for link in ("pty", "can"):
         for run in range(args.runs if link in cases else 0):

@@ -94,12 +94,18 @@ class TempRate:
         self._means: deque[tuple[float, float]] = deque(maxlen=self.WINDOW)
         self.value = 0.0
         self._dirty: int | None = None  # the last whole second this copy saw only in part
-        self._last: tuple[int, float] | None = None  # seq and t [s] of the last sample seen
+        self._last: tuple[int, float, float] | None = None  # seq, t [s], temp [degC] of the last sample
+        self._dt: float | None = None  # [s] the unit's sample interval, from samples received in a row
 
-    LOST_S = 0.01
-    """Samples lost in a gap [s of unit time] above which the seconds around it count as seen in
-    part: 1 % of a second's samples moves its mean by at most 1 % of the temperature's change over
-    that second. A link that drops a frame now and then must not stop the learning."""
+    FILL_S = 2.0
+    """Longest gap [s of unit time] whose lost samples are filled in: their temperatures by a straight
+    line between the samples on either side, their times on the unit's sample clock. The unit's means
+    then differ from the host's only by the lost samples' noise and the temperature's curvature over
+    the gap (at most FILL_S^2 / 8 times |d2T/dt2|, 5e-4 degC for a 0.5 degC/s warm-up of tau 60 s
+    over 2 s). Such a copy still counts as the unit's: a link that loses a burst every few seconds
+    (a USB-serial adapter that overruns, a busy CAN bus) would otherwise keep a unit with a dT/dt set
+    out of learning for good (benchmarks/bench_late_start.py --cases lossy). A longer gap leaves the
+    seconds around it seen in part, for WINDOW seconds."""
 
     @property
     def exact(self) -> bool:
@@ -122,23 +128,26 @@ class TempRate:
         """Per-sample dtemp (N,) [degC/s] and whether each is the unit's own (N,) bool (``exact``).
 
         ``seq``: the samples' seq (protocol.md: 0 at switch-on). A copy whose first sample is not
-        seq 0 missed the start of its first second; a jump in seq that lost more than ``LOST_S`` of
-        unit time leaves the seconds around it seen in part. None: no gaps looked for (the unit's own).
+        seq 0 missed the start of its first second; a jump in seq is filled in up to ``FILL_S`` of
+        unit time and leaves the seconds around it seen in part beyond. None: no gaps looked for (the
+        unit's own).
         """
         t = np.asarray(t_s, dtype=np.float64)
         temp = np.asarray(temp_c, dtype=np.float64)
+        real = np.ones(t.size, dtype=bool)
+        gap = np.zeros(t.size, dtype=bool)
+        first_seq = None if seq is None or not t.size else int(seq[0])
+        if seq is not None and t.size:
+            t, temp, real, gap = self._fill(np.asarray(seq, dtype=np.int64), t, temp)
         out = np.empty(t.size)
         ok = np.empty(t.size, dtype=bool)
         sec = np.floor(t).astype(np.int64)
-        gap = np.zeros(t.size, dtype=bool)
-        if seq is not None and t.size:
-            gap = self._gaps(np.asarray(seq, dtype=np.int64), t)
         i = 0
         while i < t.size:
             j = i + int(np.searchsorted(sec[i:], sec[i], side="right"))
             if self._sec is not None and sec[i] != self._sec:
                 self._close()
-            first = self._sec is None and not (sec[i] == 0 and (seq is None or int(seq[0]) == 0))
+            first = self._sec is None and not (sec[i] == 0 and first_seq in (None, 0))
             if first or gap[i:j].any():  # a first sample that is not the unit's first, or a gap
                 self._dirty = int(sec[i])
             self._sec = int(sec[i])
@@ -147,15 +156,43 @@ class TempRate:
             self._sum += float(temp[i:j].sum())
             self._n += j - i
             i = j
-        return out, ok
+        return out[real], ok[real]
 
-    def _gaps(self, seq: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Per sample: whether more than LOST_S of unit time was lost just before it."""
-        last = (int(seq[0]) - 1, float(t[0])) if self._last is None else self._last
+    def _fill(self, seq: np.ndarray, t: np.ndarray,
+              temp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The samples with those lost in gaps of up to FILL_S put back: t [s], temp [degC], whether
+        each was received, and whether a gap that is not filled came just before it.
+
+        A gap is filled only where its seq and time agree with the sample interval seen so far (within
+        a quarter of it): a jump in seq that the time does not bear out (a unit that restarted its
+        count, a corrupt field) is not a run of lost samples, and filling it could need millions."""
+        last = (int(seq[0]) - 1, float(t[0]), float(temp[0])) if self._last is None else self._last
+        self._last = (int(seq[-1]), float(t[-1]), float(temp[-1]))
         prev_seq, prev_t = np.r_[last[0], seq[:-1]], np.r_[last[1], t[:-1]]
-        self._last = (int(seq[-1]), float(t[-1]))
+        prev_temp = np.r_[last[2], temp[:-1]]
         lost = (seq - prev_seq - 1) % SEQ_MODULO
-        return lost * (t - prev_t) / (lost + 1) > self.LOST_S
+        span = t - prev_t
+        in_row = span[(lost == 0) & (span > 0)]
+        if in_row.size:
+            self._dt = float(np.median(in_row))
+        where = np.flatnonzero(lost)
+        fill = where[:0]
+        if self._dt is not None and where.size:
+            each = span[where] / (lost[where] + 1)
+            on_clock = np.abs(each - self._dt) <= 0.25 * self._dt
+            fill = where[on_clock & (lost[where] * self._dt <= self.FILL_S)]
+        gap = np.zeros(t.size, dtype=bool)
+        gap[np.setdiff1d(where, fill)] = True  # too long, or not lost samples: seen in part
+        if not fill.size:
+            return t, temp, np.ones(t.size, dtype=bool), gap
+        n = lost[fill]
+        k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n) + 1  # 1..n within each gap
+        frac = k / np.repeat(n + 1, n)
+        t_fill = np.repeat(prev_t[fill], n) + frac * np.repeat(span[fill], n)
+        temp_fill = np.repeat(prev_temp[fill], n) + frac * np.repeat(temp[fill] - prev_temp[fill], n)
+        at = np.repeat(fill, n)  # each goes in before the sample after its gap
+        return (np.insert(t, at, t_fill), np.insert(temp, at, temp_fill),
+                np.insert(np.ones(t.size, dtype=bool), at, False), np.insert(gap, at, False))
 
     def _close(self) -> None:
         if self._n and self._sec is not None:
