@@ -1,7 +1,7 @@
 """A daemon that does not hear the unit from its first sample: what it learns, per case.
 
-    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,lossy,pty,can] [--seeds 3]
-        [--runs 4] [--json]
+    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,lossy,pty,ptylossy,can]
+        [--seeds 3] [--runs 4] [--json]
 
 In simulated time through the daemon's own Session (tests/grade_harness.py), deterministic per seed.
 On a vehicle the IMU streams from power-on while the navigation computer boots, systemd restarts a
@@ -25,7 +25,8 @@ daemon must rebuild both from what it heard.
   the independent unit as a process on a pty with that factory set, the real daemon opening the port
   as soon as it is up, which is a part of a second into the unit's first second. Figure: the cut of
   the acked set per axis, from the unit's own truth. ``can``: the same on CAN (python-can
-  ``udp_multicast``, node 3), where the daemon also starts after the unit.
+  ``udp_multicast``, node 3), where the daemon also starts after the unit. ``ptylossy``: the pty case through
+  tests/lossy_pty.py, a pty that loses 0.2 s of the unit's bytes every 5 s (``LOSSY_LIVE``).
 
 Each row also gives the samples the unit had sent at the push and ``dtemp_inexact_samples``.
 To compare with an older commit, copy this file into a worktree of it and run it there.
@@ -132,6 +133,10 @@ def lossy(seed: int, burst_s: float, every_s: float, within_s: float = 150.0) ->
         return _cut_row(run, unit, row)
 
 
+LOSSY_LIVE = (0.2, 5.0)
+"""(burst lost [s], every [s]) of wall time on the ``ptylossy`` line."""
+
+
 def live(run: int, link: str = "pty") -> dict[str, Any]:
     from tests.indep.wire import CoeffSet
     from tests.sim_helpers import MULTICAST_GROUP, free_udp_port
@@ -141,9 +146,16 @@ def live(run: int, link: str = "pty") -> dict[str, Any]:
         tmp = Path(d)
         flash = {"boot": 4, "set": CoeffSet(FACTORY_VERSION, 0x549E, factory_dtemp_set()).encode().hex()}
         (tmp / "flash.json").write_text(json.dumps(flash))
-        if link == "pty":
+        proxy = None
+        if link in ("pty", "ptylossy"):
             unit = IndepUnit(tmp, "--link", "pty", "--rate", "400", "--grade", "fibre")
-            daemon = Daemon(tmp, {"kind": "serial", "url": unit.address, "baudrate": 921600})
+            address = unit.address
+            if link == "ptylossy":
+                from tests.lossy_pty import LossyPty
+
+                proxy = LossyPty(unit.address, *LOSSY_LIVE)
+                address = proxy.address
+            daemon = Daemon(tmp, {"kind": "serial", "url": address, "baudrate": 921600})
         else:
             port = free_udp_port()
             unit = IndepUnit(tmp, "--link", "can", "--node", "3", "--rate", "400", "--grade", "fibre",
@@ -156,9 +168,16 @@ def live(run: int, link: str = "pty") -> dict[str, Any]:
         finally:
             daemon.stop()
             unit.stop()
+            if proxy is not None:
+                proxy.close()
     session = status.get("session", status)
     row: dict[str, Any] = {"case": link, "run": run, "pushed": bool(ok),
                            "dtemp_inexact_samples": session.get("dtemp_inexact_samples")}
+    if proxy is not None:
+        row["dropped_bytes"] = proxy.dropped_bytes
+        link_stats = status.get("link", {})
+        errors = link_stats.get("errors", {})
+        row["link"] = {"frames": link_stats.get("frames")} | {k: v for k, v in errors.items() if v}
     if ok:
         ack = [a for a in truth["acks"] if a["boot"] == 5][-1]
         row["samples_at_push"] = ack["seq_first"]
@@ -170,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", default="warmup,dtemp,gap,lossy")
     p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--runs", type=int, default=4, help="runs of the pty and can cases")
+    p.add_argument("--runs", type=int, default=4, help="runs of the pty, ptylossy and can cases")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of lines")
     args = p.parse_args(argv)
     import logging
@@ -194,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
                 + len(LOSSY) * ("lossy" in cases)
             for r in rows[-shown:]:
                 print(json.dumps(r), flush=True)
-    for link in ("pty", "can"):
+    for link in ("pty", "ptylossy", "can"):
         for run in range(args.runs if link in cases else 0):
             rows.append(live(run, link))
             if not args.json:

@@ -189,6 +189,33 @@ def test_held_temperature_rate_set_is_reconstructed(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_held_temperature_rate_set_over_a_line_that_loses_bursts(tmp_path: Path) -> None:
+    """The same unit and set, on a line that loses 0.2 s of bytes every 5 s, cut anywhere in a frame.
+
+    The unit's dT/dt rule runs on over the samples the host never saw. Before the host filled them in
+    (TempRate.FILL_S), each burst set 20 s aside, and the daemon pushed nothing in 120 s
+    (benchmarks/bench_late_start.py --cases ptylossy at 856f8f4: 45,933 samples set aside).
+    """
+    from tests.indep.inprocess import FACTORY_VERSION, factory_dtemp_set
+    from tests.indep.wire import CoeffSet
+    from tests.lossy_pty import LossyPty
+
+    factory = CoeffSet(FACTORY_VERSION, 0x549E, factory_dtemp_set())
+    (tmp_path / "flash.json").write_text(json.dumps({"boot": 4, "set": factory.encode().hex()}))
+    unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "400", "--grade", "fibre")
+    line = LossyPty(unit.address, burst_s=0.2, every_s=5.0)
+    daemon = Daemon(tmp_path, {"kind": "serial", "url": line.address, "baudrate": 921600})
+    try:
+        _check_push(unit, daemon, 5)
+        errors = daemon.status()["link"]["errors"]
+        assert line.dropped_bytes > 0 and errors["seq_gaps"] >= 3, errors  # the bursts were lost
+    finally:
+        daemon.stop()
+        unit.stop()
+        line.close()
+
+
+@pytest.mark.slow
 def test_mems_grade_pty_1khz_push(tmp_path: Path) -> None:
     unit = IndepUnit(tmp_path, "--link", "pty", "--rate", "1000", "--grade", "mems", "--noise", "0.1")
     daemon = Daemon(tmp_path, {"kind": "serial", "url": unit.address, "baudrate": 921600})
