@@ -131,6 +131,7 @@ _BAD_VALUES: dict[str, list[object]] = {
     "push.target_drift_dph": [0, -1],
     "push.min_cut": [1, 0.5],
     "push.wander_horizon_s": [0, -600],
+    "store.keep_versions": [-1],
 }
 
 

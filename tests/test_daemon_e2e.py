@@ -200,6 +200,53 @@ def test_garbage_and_a_unit_that_never_says_hello_leave_the_daemon_waiting_and_s
         stop(sim)
 
 
+def test_the_store_is_pruned_to_keep_versions_at_start_and_at_each_switch_on(tmp_path: Path) -> None:
+    """12 versions of the sim's unit on disk (v4 acked), store.keep_versions 3.
+
+    At start the daemon keeps v10-v12 and v4 (the set the unit held), and warm-starts from v4. An
+    operator's set then becomes v13 (acked); at the next switch-on v10 goes, v4 stays (one of the two
+    newest acked), and the session warm-starts from v13.
+    """
+    from gyrocal.daemon.store import CalibrationStore
+    from tests.test_store import make_record
+
+    store = CalibrationStore(tmp_path / "state")
+    for i in range(12):
+        store.add(make_record(serial=4242, seed=i))
+    store.update_push(4242, 4, {"status": "acked", "utc": "2026-11-20T10:00:00.000000Z"})
+    udir = tmp_path / "state" / "units" / "4242"
+    pty = tmp_path / "unit.pty"
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty))
+    daemon = None
+    try:
+        wait_for(lambda: pty.exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(pty)}, store={"keep_versions": 3})
+        st = wait_for(lambda: (s := status(sock)).get("state") == "COLLECTING" and s, 30, "a session",
+                      tmp_path)
+        assert sorted(p.name for p in udir.iterdir()) == [f"v{v:06d}.json" for v in (4, 10, 11, 12)]
+        assert st.get("warm_started_from") == 4, st
+        rec = json.loads((udir / "v000012.json").read_text())
+        (tmp_path / "set.json").write_text(json.dumps({"terms": rec["terms"],
+                                                       "coefficients": rec["coefficients_dps"]}))
+        out = subprocess.run([*PY, "push", "--file", str(tmp_path / "set.json"), "--socket", str(sock)],
+                             capture_output=True, text=True, timeout=30)
+        assert out.returncode == 0 and "pushing v13" in out.stdout + out.stderr, out.stdout + out.stderr
+        wait_for(lambda: (status(sock).get("last_push") or {}).get("status") == "acked", 20, "the push",
+                 tmp_path)
+        out = subprocess.run([*PY, "recalibrate", "--socket", str(sock)], capture_output=True, text=True,
+                             timeout=30)
+        assert out.returncode == 0, out.stderr
+        st = wait_for(lambda: (s := status(sock))["sessions"] >= 2 and s, 20, "a new session", tmp_path)
+        assert sorted(p.name for p in udir.iterdir()) == [f"v{v:06d}.json" for v in (4, 11, 12, 13)]
+        assert st.get("warm_started_from") == 13, st
+        log = (tmp_path / "daemon.log").read_text()
+        assert "removed 8 versions, v1 to v9" in log and "removed v10," in log
+    finally:
+        if daemon is not None:
+            assert stop(daemon) == 0
+        stop(sim)
+
+
 def test_link_vanishes_and_returns_the_daemon_reconnects_and_recalibrates(tmp_path: Path) -> None:
     flash = tmp_path / "flash.json"
     pty = tmp_path / "unit.pty"

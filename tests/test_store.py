@@ -268,3 +268,32 @@ def test_assigned_version_never_goes_below_the_floor_the_unit_holds(tmp_path: Pa
     assert store.add(make_record(seed=1), min_version=8).version == 9
     assert store.add(make_record(seed=2)).version == 10
     assert [r.version for r in CalibrationStore(tmp_path).history(1234)] == [8, 9, 10]
+
+
+def test_prune_keeps_the_newest_versions_and_every_set_the_unit_may_hold(tmp_path: Path, caplog) -> None:
+    """keep 5 of 30: v26-v30, plus the two newest acked (v3, v8: older failed pushes after them), v2 that
+    was acked last (a rollback re-sent it), and the pending v12 (a push in flight)."""
+    store = CalibrationStore(tmp_path)
+    for i in range(30):
+        store.add(make_record(seed=i))
+    for v in range(13, 31):
+        store.update_push(1234, v, {"status": "nak"})
+    for v, utc in ((2, "2026-11-20T10:00:00.000000Z"), (3, "2026-11-01T10:00:00.000000Z"),
+                   (8, "2026-11-02T10:00:00.000000Z"), (5, "2026-10-01T10:00:00.000000Z")):
+        store.update_push(1234, v, {"status": "acked", "utc": utc})
+    for v in (1, 4, 6, 7, 9, 10, 11):
+        store.update_push(1234, v, {"status": "timeout"})
+    caplog.set_level(logging.INFO, logger="gyrocal.daemon.store")
+    gone = store.prune(1234, keep=5)
+    kept = [2, 5, 8, 12, 26, 27, 28, 29, 30]  # v5: one of the two newest acked by version (5, 8)
+    assert [r.version for r in store.history(1234)] == kept
+    assert gone == sorted(set(range(1, 31)) - set(kept))
+    files = sorted(p.name for p in (tmp_path / "units" / "1234").iterdir())
+    assert files == [f"v{v:06d}.json" for v in kept]
+    reopened = CalibrationStore(tmp_path)
+    assert [r.version for r in reopened.history(1234)] == kept
+    assert reopened.next_version(1234) == 31 and reopened.latest(1234).version == 8
+    assert store.prune(1234, keep=5) == [] and store.prune(1234, keep=0) == []
+    said = [r.getMessage() for r in caplog.records if "removed" in r.getMessage()]
+    assert len(said) == 1 and "21 versions, v1 to v25" in said[0], said
+

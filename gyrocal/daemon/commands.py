@@ -116,7 +116,7 @@ class CommandsMixin:
             else:
                 if new.link != self.cfg.link:
                     log.warning("SIGHUP: link settings changed; they take effect at the next restart")
-                for section in ("validation", "push", "monitor", "still", "estimator"):
+                for section in ("validation", "push", "monitor", "store", "still", "estimator"):
                     setattr(self.cfg, section, getattr(new, section))
                 log.info("SIGHUP: configuration reloaded from %s", self.cfg.source)
         self.notifier.ready()

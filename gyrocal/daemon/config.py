@@ -74,6 +74,9 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
         "window_s": ((int, float), 10.0, "write a window in seconds"),
         "alarm_floor_dps": ((int, float), 0.002, "write the smallest residual [deg/s] that can alarm"),
     },
+    "store": {
+        "keep_versions": ((int,), 1000, "write how many calibration versions to keep per unit, or 0 for all"),
+    },
     "still": {
         "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
         "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
@@ -155,6 +158,7 @@ _RANGES: dict[str, Range] = {
     "push.target_drift_dph": _gt(0, 1e6, "deg/h"),
     "push.min_cut": _gt(1, 1e6),
     "push.wander_horizon_s": _gt(0, 1e7, "s"),
+    "store.keep_versions": Range(0, 10**9),
 }
 
 _TOP = {
@@ -174,6 +178,7 @@ class DaemonConfig:
     validation: dict[str, Any]
     push: dict[str, Any]
     monitor: dict[str, Any]
+    store: dict[str, Any]
     still: dict[str, Any]
     state_dir: Path
     control_socket: Path

@@ -176,12 +176,24 @@ class Engine(CommandsMixin):
 
     def _tidy_store(self) -> None:
         """At start (the only writer now): remove temporaries of interrupted writes, close abandoned
-        pushes. A store that cannot be written is reported, never fatal (the session retries)."""
+        pushes, prune each unit's history to store.keep_versions. This runs before READY=1, while
+        systemd's start timeout (90 s) and not its watchdog (10 s) applies: a store grown over years
+        takes seconds to read and to prune (docs/operations.md). A store that cannot be written is
+        reported, never fatal (the session retries)."""
         try:
             self.store.clean_leftovers()
             close_abandoned(self.store)
         except Exception as err:
             log.error("calibration store: start-up tidy failed: %s", err)
+        for serial in self.store.units():
+            self._prune_store(serial)
+
+    def _prune_store(self, serial: int) -> None:
+        """Keep the newest store.keep_versions of a unit (CalibrationStore.prune); never fatal."""
+        try:
+            self.store.prune(serial, int(self.cfg.store["keep_versions"]))
+        except Exception as err:
+            log.error("calibration store: unit %d: pruning old versions failed: %s", serial, err)
 
     def close(self) -> None:
         self.notifier.stopping()
@@ -401,6 +413,7 @@ class Engine(CommandsMixin):
         old = self.session
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
+        self._prune_store(hello.serial)  # bounded for years of switch-ons
         prior = self.store.latest(hello.serial, acked_only=True)
         caps = of_link(self.link)  # what this unit holds, as of its HELLO
         moved = frame_changed(caps, prior)

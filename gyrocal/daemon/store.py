@@ -435,6 +435,53 @@ class CalibrationStore:
             log.info("calibration store: unit %d version %d push %s", serial, version, merged.get("status"))
             return new
 
+    def prune(self, serial: int, keep: int) -> list[int]:
+        """Delete all but the ``keep`` newest versions of ``serial`` (0: keep every one); returns the
+        versions deleted, oldest first.
+
+        Why: one version per push, a push per switch-on, for years. Each version is a 4 KB file and
+        about 11 KB of memory once loaded, and every daemon start reads them all: 40,000 versions took
+        12 s and 437 MB (benchmarks/bench_store.py). Never deleted whatever their age: the two newest
+        sets the unit verifiably held (warm start, and the default rollback target), the one it
+        acked last (a rollback re-sends an older version, which the unit then holds), and a push still
+        pending. The newest version is always kept, so no version number is ever reused. A crash
+        between two deletions leaves a shorter history, never a damaged one.
+        """
+        if keep <= 0:
+            return []
+        with self._lock:
+            recs = self._load(serial)
+            versions = sorted(recs)
+            if len(versions) <= keep:
+                return []
+            applied = [v for v in versions if recs[v].push.get("status") in APPLIED_STATUSES]
+            protect = set(versions[-keep:]) | set(applied[-2:])
+            protect |= {v for v in versions if recs[v].push.get("status") == "pending"}
+            if applied:
+                protect.add(max(applied, key=lambda v: (str(recs[v].push.get("utc") or ""), v)))
+            gone: list[int] = []
+            udir = self._unit_dir(serial)
+            for v in versions:
+                if v in protect:
+                    continue
+                try:
+                    (udir / f"v{v:06d}.json").unlink()
+                except FileNotFoundError:
+                    pass
+                except OSError as err:
+                    log.warning("calibration store: cannot remove unit %d version %d (%s); kept",
+                                serial, v, err)
+                    continue
+                del recs[v]
+                gone.append(v)
+            if gone:
+                _fsync_dir(udir)
+                which = (f"v{gone[0]}" if len(gone) == 1
+                         else f"{len(gone)} versions, v{gone[0]} to v{gone[-1]}")
+                log.info("calibration store: unit %d: removed %s, beyond the newest %d "
+                         "(store.keep_versions); the sets the unit held last are kept", serial, which, keep)
+            return gone
+
     def reload(self) -> None:
         """Forget the in-memory view; the next read rebuilds it from the files."""
         with self._lock:
