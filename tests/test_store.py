@@ -297,3 +297,25 @@ def test_prune_keeps_the_newest_versions_and_every_set_the_unit_may_hold(tmp_pat
     said = [r.getMessage() for r in caplog.records if "removed" in r.getMessage()]
     assert len(said) == 1 and "21 versions, v1 to v25" in said[0], said
 
+
+
+def test_prune_on_a_store_that_cannot_be_written_keeps_everything_and_says_so_once(
+        tmp_path: Path, caplog) -> None:
+    """The unit's directory replaced by a file after the load (ENOTDIR, as the fault campaign's
+    store_unwritable does): no version is lost, and one line, not one per version."""
+    store = CalibrationStore(tmp_path)
+    for i in range(8):
+        store.add(make_record(seed=i, push={"status": "nak"}))
+    udir = tmp_path / "units" / "1234"
+    aside = tmp_path / "aside"
+    udir.rename(aside)
+    udir.write_text("not a directory")
+    caplog.set_level(logging.WARNING, logger="gyrocal.daemon.store")
+    try:
+        assert store.prune(1234, keep=2) == []
+    finally:
+        udir.unlink()
+        aside.rename(udir)
+    assert len(store.history(1234)) == 8 and len(list(udir.iterdir())) == 8
+    said = [r.getMessage() for r in caplog.records if "cannot remove" in r.getMessage()]
+    assert len(said) == 1, said

@@ -468,10 +468,10 @@ class CalibrationStore:
                     (udir / f"v{v:06d}.json").unlink()
                 except FileNotFoundError:
                     pass
-                except OSError as err:
-                    log.warning("calibration store: cannot remove unit %d version %d (%s); kept",
-                                serial, v, err)
-                    continue
+                except OSError as err:  # a read-only store: one line, not one per version
+                    log.warning("calibration store: cannot remove unit %d version %d (%s); the older "
+                                "versions are kept until the store can be written", serial, v, err)
+                    break
                 del recs[v]
                 gone.append(v)
             if gone:
