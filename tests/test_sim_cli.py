@@ -24,6 +24,8 @@ def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
         (["--schedule", "/nonexistent/poses.yaml"], "cannot read the schedule"),
         (["--rate", "0"], "--rate"),
         (["--garbage-rate", "2"], "--garbage-rate"),
+        (["--lose-burst", "0.2"], "--lose-every"),
+        (["--lose-burst", "0.2", "--lose-every", "0.1"], "longer than the burst"),
         (["--link", "can", "--can-config", "{not json"], "not valid JSON"),
         (["--link", "can", "--can-config", '{"interface": "no_such_bus"}'], "not a python-can interface"),
         (["--link", "can", "--can-config", '{"interface": "udp_multicast", "channel": "nope"}'],

@@ -440,8 +440,8 @@ class CalibrationStore:
         versions deleted, oldest first.
 
         Why: one version per push, a push per switch-on, for years. Each version is a 4 KB file and
-        about 11 KB of memory once loaded, and every daemon start reads them all: 40,000 versions took
-        12 s and 437 MB (benchmarks/bench_store.py). Never deleted whatever their age: the two newest
+        about 13 KB of memory once loaded, and every daemon start reads them all: 40,000 versions took
+        11.4 s and 510 MB (benchmarks/bench_store.py). Never deleted whatever their age: the two newest
         sets the unit verifiably held (warm start, and the default rollback target), the one it
         acked last (a rollback re-sends an older version, which the unit then holds), and a push still
         pending. The newest version is always kept, so no version number is ever reused. A crash

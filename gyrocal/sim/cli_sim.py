@@ -96,6 +96,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     f.add_argument("--no-coeff-read", action="store_true", help="never answer COEFF_READ")
     f.add_argument("--seq-outlier-every", type=float, default=0.0, metavar="S",
                    help="send one sample with a far sequence number every S s (0 = never)")
+    f.add_argument("--lose-burst", type=float, default=0.0, metavar="S",
+                   help="lose S s of samples on the link in every --lose-every (seq and time run on)")
+    f.add_argument("--lose-every", type=float, default=0.0, metavar="S",
+                   help="the period of those bursts [s of unit time] (0 = never)")
     f.add_argument("--silence-at", type=float, default=0.0, metavar="S",
                    help="go silent S s after start (see --silence-for; SIGUSR2 toggles at run time)")
     f.add_argument("--silence-for", type=float, default=0.0, metavar="S", help="length of that silence [s]")
@@ -149,9 +153,12 @@ def _check(args: argparse.Namespace) -> None:
     if not 0 < args.rate <= MAX_RATE_HZ:
         raise ConfigError(f"--rate {args.rate:g}: must be in (0, {MAX_RATE_HZ:g}] samples/s")
     for name in ("duration", "power_cycle_every", "seq_outlier_every", "silence_at", "silence_for",
-                 "nak_next", "drop_acks", "nan_readback", "lose_ack", "cycle_after_ack"):
+                 "lose_burst", "lose_every", "nak_next", "drop_acks", "nan_readback", "lose_ack",
+                 "cycle_after_ack"):
         if getattr(args, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')}: must be >= 0")
+    if args.lose_burst > 0 and not args.lose_every > args.lose_burst:
+        raise ConfigError(f"--lose-burst {args.lose_burst:g}: give --lose-every S, longer than the burst")
     if not 0.0 <= args.garbage_rate <= 1.0:
         raise ConfigError(f"--garbage-rate {args.garbage_rate:g}: must be a probability in [0, 1]")
     if args.link == "can" and args.pty_link:
@@ -185,7 +192,8 @@ def main(args: argparse.Namespace) -> int:
                     garbage_rate=args.garbage_rate, nan_readback=args.nan_readback, lose_ack=args.lose_ack,
                     cycle_after_ack=args.cycle_after_ack, no_coeff_read=args.no_coeff_read,
                     seq_outlier_every_s=args.seq_outlier_every, silence_at_s=args.silence_at,
-                    silence_for_s=args.silence_for)
+                    silence_for_s=args.silence_for, lose_burst_s=args.lose_burst,
+                    lose_every_s=args.lose_every)
     truth = set_noise(grade_truth(args.grade, args.rate), args.noise)  # a grade, then --noise on top
     unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)

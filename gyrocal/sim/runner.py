@@ -12,7 +12,8 @@ signal handlers.
 Faults the runner plays (``unit.faults``): a power cycle right after an ack (``cycle_after_ack``),
 one sample with a far sequence number every ``seq_outlier_every_s``, and a silence (nothing sent,
 nothing answered, the sample counter running on) from ``silence_at_s`` for ``silence_for_s``, or
-toggled at run time (SIGUSR2 in ``gyrocal sim``).
+toggled at run time (SIGUSR2 in ``gyrocal sim``), and samples lost on the link for ``lose_burst_s``
+of every ``lose_every_s`` of unit time.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import os
 import time
 from pathlib import Path
 from typing import Any, Protocol
+
+import numpy as np
 
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.unit import VirtualUnit
@@ -87,6 +90,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         self._started = time.monotonic()
         self._next_outlier = 0
         self.outliers_sent = 0
+        self.lost_sent = 0  # samples lost on the link (fault lose_burst_s)
         self._session_t0 = 0.0
         self.replies_sent = 0
         self.requests = 0
@@ -164,9 +168,15 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         if self.silent(now):
             return  # the unit's clock and counter run on; nothing reaches the wire
         samples = chunk.samples()
+        f = self.unit.faults
+        if f.lose_burst_s > 0 and f.lose_every_s > 0:  # lost on the link: seq and time run on
+            lost = np.mod(chunk.columns["t"], f.lose_every_s) < f.lose_burst_s
+            if lost.any():
+                self.lost_sent += int(lost.sum())
+                samples = [s for s, gone in zip(samples, lost, strict=True) if not gone]
         every = round(self.unit.faults.seq_outlier_every_s * self.unit.rate_hz)
         if every > 0 and int(chunk.seq[-1]) >= self._next_outlier:
-            if self._next_outlier:
+            if self._next_outlier and samples:
                 k = len(samples) // 2
                 samples[k] = dataclasses.replace(samples[k], seq=(samples[k].seq + 0x40000000) % (1 << 32))
                 self.outliers_sent += 1
@@ -217,7 +227,7 @@ unit time (round(power_cycle_every_s * rate_hz) samples) in each session (0 = ne
         doc.update(running=running, link=self.transport.kind, address=self.transport.describe(),
                    transport=dict(self.transport.stats), backlog_bytes=self.transport.backlog_bytes,
                    requests=self.requests, replies_sent=self.replies_sent, pid=os.getpid(),
-                   outliers_sent=self.outliers_sent, replugs=self.replugs,
+                   outliers_sent=self.outliers_sent, lost_on_link=self.lost_sent, replugs=self.replugs,
                    silent=self.silent(time.monotonic()),
                    wall_time=time.time())
         if self.recorder is not None:

@@ -75,6 +75,11 @@ class Faults:
     """Go silent (send nothing, answer nothing) this many s after the process started (0 = never)."""
     silence_for_s: float = 0.0
     """How long the silence lasts [s]; the sample counter keeps running meanwhile."""
+    lose_burst_s: float = 0.0
+    """Samples lost on the link for this long [s of unit time] in every ``lose_every_s`` (a USB-serial
+    adapter that overruns, a busy CAN bus): the unit takes and counts them, the host never sees them."""
+    lose_every_s: float = 0.0
+    """The period of those bursts [s of unit time] (0 = never)."""
 
 
 @dataclass(frozen=True)
