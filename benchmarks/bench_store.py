@@ -57,7 +57,7 @@ print(json.dumps(out))
 """
 
 
-def _record(version: int, rng: random.Random) -> dict[str, Any]:
+def history_record(version: int, rng: random.Random) -> dict[str, Any]:
     """A record the size of the demo daemon's (4.4 KB): full-precision floats, its stats' layout."""
     p = len(SEED000_TERMS)
 
@@ -96,7 +96,7 @@ def run(versions: int, keep: int) -> dict[str, Any]:
         udir.mkdir(parents=True)
         rng = random.Random(versions)
         for v in range(1, versions + 1):
-            (udir / f"v{v:06d}.json").write_text(json.dumps(_record(v, rng)))
+            (udir / f"v{v:06d}.json").write_text(json.dumps(history_record(v, rng)))
         disk = sum(f.stat().st_size for f in udir.iterdir()) / 1e6
         full = _child(state, keep)
         row: dict[str, Any] = {"versions": versions, "disk_mb": round(disk, 1), **full}

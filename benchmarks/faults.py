@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -43,6 +44,7 @@ from typing import Any
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_store's records (long_history)
 
 from gyrocal.daemon.control import request  # noqa: E402
 from gyrocal.daemon.reconcile import record_crc  # noqa: E402
@@ -554,6 +556,47 @@ def sc_garbage_line(rig: Rig) -> Result:
     return _finish(rig, res)
 
 
+def sc_lossy_link(rig: Rig) -> Result:
+    res = Result("lossy_link", rig.link, "0.2 s of samples lost on the link in every 3 s, through a push")
+    rig.start_daemon()
+    rig.start_sim("--lose-burst", "0.2", "--lose-every", "3")
+    acked = rig.wait(rig.acked, PUSH_S)
+    lost = rig.lost_samples()
+    dropped = rig.unit().get("lost_on_link", 0)
+    res.lost = f"{lost} samples lost on the link, counted (the sim dropped {dropped} by the end)"
+    res.ok = bool(acked) and lost > 0
+    return _finish(rig, res)
+
+
+HISTORY = 5000
+"""Versions of the unit already in the store for ``long_history``: years of switch-ons."""
+
+
+def sc_long_history(rig: Rig) -> Result:
+    from bench_store import history_record
+
+    res = Result("long_history", rig.link, f"{HISTORY:,} versions of the unit already in the store, "
+                 "store.keep_versions 1000; then a push")
+    udir = rig.state / "units" / str(SERIAL)
+    udir.mkdir(parents=True)
+    rng = random.Random(1)
+    for v in range(1, HISTORY + 1):
+        rec = history_record(v, rng)
+        rec["coefficients_dps"] = [[0.0] * len(rec["terms"]) for _ in range(3)]  # no head start
+        (udir / f"v{v:06d}.json").write_text(json.dumps(rec))
+    t0 = time.monotonic()
+    rig.start_daemon()
+    rig.start_sim()
+    ok = rig.wait(rig.healthy, 60)
+    up_s = time.monotonic() - t0
+    acked = rig.wait(rig.acked, PUSH_S)
+    kept = len(list(udir.glob("v*.json")))
+    res.lost = (f"{HISTORY + 1 - kept} old versions pruned, {kept} kept; healthy {up_s:.1f} s after the "
+                "daemon's start")
+    res.ok = bool(ok) and bool(acked) and kept <= 1003
+    return _finish(rig, res)
+
+
 SCENARIOS: dict[str, tuple[Callable[[Rig], Result], tuple[str, ...], bool]] = {
     # name: (function, links, quick)
     "start_without_unit": (sc_start_without_unit, ("pty", "can"), True),
@@ -573,6 +616,8 @@ SCENARIOS: dict[str, tuple[Callable[[Rig], Result], tuple[str, ...], bool]] = {
     "no_coeff_read": (sc_no_coeff_read, ("pty",), True),
     "flapping_cable": (sc_flapping_cable, ("pty",), True),
     "garbage_line": (sc_garbage_line, ("pty",), False),
+    "lossy_link": (sc_lossy_link, ("pty", "can"), False),
+    "long_history": (sc_long_history, ("pty",), False),
 }
 
 
