@@ -226,7 +226,8 @@ def test_garbage_and_a_unit_that_never_says_hello_leave_the_daemon_waiting_and_s
 def test_the_store_is_pruned_to_keep_versions_at_start_and_at_each_switch_on(tmp_path: Path) -> None:
     """12 versions of the sim's unit on disk (v4 acked), store.keep_versions 3.
 
-    At start the daemon keeps v10-v12 and v4 (the set the unit held), and warm-starts from v4. An
+    At start the daemon keeps v10-v12 and v4 (the last set the store says the unit held), and
+    warm-starts from v4. An
     operator's set then becomes v13 (acked); at the next switch-on v10 goes, v4 stays (one of the two
     newest acked), and the session warm-starts from v13.
     """
