@@ -169,9 +169,13 @@ def test_fibre_grade_pty_400hz_push_and_power_cycle(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@EXTENDED_ONLY
 def test_held_temperature_rate_set_is_reconstructed(tmp_path: Path) -> None:
     """The unit comes with a factory set on terms 0x549E (dtemp in it); the daemon must add it back
-    exactly (``out + C_applied @ terms``, doc sec. 6) before it learns, or the first push is poor."""
+    exactly (``out + C_applied @ terms``, doc sec. 6) before it learns, or the first push is poor.
+
+    Extended only: the next test runs the same unit, set and late open of the port over a line that
+    also loses bursts, a superset of this one, and each costs about a minute of real time."""
     from tests.indep.inprocess import FACTORY_VERSION, factory_dtemp_set
     from tests.indep.wire import CoeffSet
 
