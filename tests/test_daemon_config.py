@@ -240,3 +240,24 @@ def test_can_link_without_any_interface_names_the_field_and_python_cans_config(n
     monkeypatch.setenv("CAN_INTERFACE", "no_such_bus")
     with pytest.raises(ConfigError, match=r"c.yaml: field 'link.can'.*unknown interface"):
         load_config(path)
+
+
+def test_terms_a_unit_cannot_evaluate_are_refused_and_new_sets_are_registered(tmp_path: Path) -> None:
+    """A column the analysis may fit but no sample carries ('temperature', a typo for temp) would fail
+    every block at run time: refused at load, naming the file, the field and the atoms to use. A set of
+    unit atoms outside the protocol's built-in table is registered, so that the daemon pushes it and
+    the unit answers for itself (ACK, or NAK UNKNOWN_TERMS: tests/test_daemon_e2e.py)."""
+    from gyrocal.protocol import termsets
+
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\nestimator: {terms: ['1', gx, 'temperature^2']}\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    text = str(err.value)
+    assert str(path) in text and "field 'estimator.terms'" in text and "'temperature'" in text
+    assert "temp, dtemp, t_on" in text
+    names = ["1", "gx", "gy", "gz", "temp*dtemp", "exp(-t_on/250)"]
+    assert termsets.names_for(termsets.terms_id(names)) is None
+    path.write_text(f"link: {{url: /dev/x}}\nestimator: {{terms: {names!r}}}\n")
+    assert load_config(path).terms == names
+    assert termsets.names_for(termsets.terms_id(names)) == tuple(names)

@@ -271,6 +271,46 @@ def test_the_store_is_pruned_to_keep_versions_at_start_and_at_each_switch_on(tmp
         stop(sim)
 
 
+def test_a_term_set_the_unit_does_not_know_is_refused_once_and_said_then_pushed_to_a_unit_that_does(
+        tmp_path: Path) -> None:
+    """estimator.terms = seed 000 + dtemp, a set outside the protocol's built-in table.
+
+    Before, the daemon refused it itself ("not a term set the unit knows"), at every validation, while
+    its status said "validation failed before", so a unit whose table holds the set was never
+    calibrated. Now the daemon pushes, and the unit answers: the sim without the set NAKs
+    UNKNOWN_TERMS, which the status says and which mints no further version this session; the sim
+    restarted with `--terms` (a firmware whose table holds it) acks.
+    """
+    from gyrocal.model.terms import SEED000_TERMS
+    from gyrocal.protocol.termsets import terms_id
+
+    terms = [*SEED000_TERMS, "dtemp"]
+    pty = tmp_path / "unit.pty"
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty))
+    daemon = None
+    try:
+        wait_for(lambda: pty.exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(pty)}, estimator={"terms": terms})
+        st = wait_for(lambda: (s := status(sock)).get("last_push") and s, 120, "a push", tmp_path)
+        assert st["last_push"]["status"] == "nak" and st["last_push"]["nak_reason"] == 2, st["last_push"]
+        st = wait_for(lambda: (s := status(sock))["reason"].startswith("the unit does not know") and s, 10,
+                      "the reason", tmp_path)
+        assert "NAK UNKNOWN_TERMS" in st["reason"] and "estimator.terms" in st["reason"]
+        time.sleep(5.0)
+        assert [p.name for p in (tmp_path / "state" / "units" / "4242").iterdir()] == ["v000001.json"]
+        stop(sim)
+        pty.unlink(missing_ok=True)
+        sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty), "--terms", ",".join(terms))
+        tid = terms_id(terms)
+        st = wait_for(lambda: (s := _acked(sock)) and (s.get("applied") or {}).get("terms_id") == tid and s,
+                      120, "an acked push to a unit that knows the set, applied", tmp_path)
+        assert unit_status(tmp_path)["applied_version"] == st["applied"]["version"] and daemon.poll() is None
+    finally:
+        if daemon is not None:
+            assert stop(daemon) == 0
+        stop(sim)
+
+
 def test_link_vanishes_and_returns_the_daemon_reconnects_and_recalibrates(tmp_path: Path) -> None:
     flash = tmp_path / "flash.json"
     pty = tmp_path / "unit.pty"

@@ -16,10 +16,11 @@ from typing import Any
 
 import yaml
 
-from gyrocal.errors import ConfigError
+from gyrocal.errors import ConfigError, ProtocolError
 from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
+from gyrocal.protocol import termsets
 
 DEFAULT_CONFIG = "default.yaml"
 
@@ -323,6 +324,15 @@ def _resolve_terms(value: str | list[Any], name: str) -> list[str]:
     try:
         TermSpec.parse(names)
     except ConfigError as err:
+        raise ConfigError(f"{name}: field 'estimator.terms': {err}") from None
+    foreign = termsets.foreign_atoms(names)
+    if foreign:  # the daemon evaluates the terms as the unit does, on what a sample carries
+        raise ConfigError(f"{name}: field 'estimator.terms': {', '.join(map(repr, foreign))} is not an "
+                          f"atom a unit evaluates; build terms from {', '.join(termsets.UNIT_ATOMS)}, "
+                          "exp(-t_on/TAU), sin(F) and cos(F) (docs/protocol.md, section 4)")
+    try:  # the host registers its set (protocol.md, section 4); whether the unit knows it, the unit says
+        termsets.register(names)
+    except ProtocolError as err:
         raise ConfigError(f"{name}: field 'estimator.terms': {err}") from None
     return names
 

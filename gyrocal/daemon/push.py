@@ -70,9 +70,10 @@ def check_set(terms: Any, coeffs: Any) -> str | None:
     try:
         tid = terms_id(list(terms))
     except Exception as err:
-        return f"terms {list(terms)} are not a term set the unit knows ({err})"
+        return f"terms {list(terms)} cannot name a term set ({err})"
     if names_for(tid) is None or len(names_for(tid) or ()) != len(terms):
-        return f"terms {list(terms)} are not a term set the unit knows"
+        return (f"terms {list(terms)} are not a term set this daemon knows: push its estimator.terms or "
+                "a set of the protocol's table (docs/protocol.md, section 4)")
     try:
         c = np.asarray(coeffs, dtype=np.float64)
     except (TypeError, ValueError):

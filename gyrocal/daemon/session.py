@@ -78,7 +78,7 @@ from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
-from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello
+from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello, NakReason
 from gyrocal.protocol.termsets import TempRate, names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
@@ -216,6 +216,7 @@ class Session(RecoveryMixin):
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
+        self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -260,7 +261,7 @@ class Session(RecoveryMixin):
         if self.applied is None:
             log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
                      applied.version, applied.terms_id)
-            self.reason = "collecting still samples"
+            self.reason = self._refused_terms() or "collecting still samples"
         self.applied = applied
         self._read_asks = 0
         self._reconcile(msg)
@@ -524,6 +525,10 @@ class Session(RecoveryMixin):
             self._check_alarm()
             self._check_convergence(now)
 
+    def _refused_terms(self) -> str | None:
+        """Why the unit will not take this session's term set (a NAK UNKNOWN_TERMS), or None."""
+        return self._unknown_terms.get(terms_id(self.names)) if self._unknown_terms else None
+
     def _check_convergence(self, now: float) -> None:
         """COLLECTING -> CONVERGED -> VALIDATING; in MONITORING, re-validate as evidence grows."""
         monitoring = self.state is State.MONITORING
@@ -536,17 +541,18 @@ class Session(RecoveryMixin):
             if not ok:
                 why = "converged, but " + gate_why
         if not ok:
-            if not monitoring:
-                self.state, self.reason = State.COLLECTING, why
+            if not monitoring:  # a set the unit refused stays the first thing the status says
+                refused = self._refused_terms()
+                self.state, self.reason = State.COLLECTING, why if refused is None else f"{refused}; {why}"
             return
         # after a push the next validation waits for twice the samples; a temperature range that has
         # widened past the held set's (refine.py) is worth a look sooner, at 10 % more samples
         early = (self._gate_result is not None and self._gate_result.widened
                  and self.learner.samples >= 1.1 * self._validated_at)
         if self.learner.samples < self._next_validation_at and not early:
-            if not monitoring:
+            if not monitoring and self.last_validation.get("passed") is False:
                 self.reason = "validation failed before; collecting more samples"
-            return
+            return  # else the reason a validated set was not pushed stays what the status says
         if self.state is State.COLLECTING:
             log.info("unit %s: estimator %s", self.hello.serial, why)
         need = self.cfg.validation["min_holdout_blocks"]
@@ -662,6 +668,11 @@ class Session(RecoveryMixin):
                 self.state, self.reason = State.COLLECTING, why
             return
         self.last_validation["passed"] = True
+        refused = self._unknown_terms.get(terms_id(list(proj.held_names)))
+        if refused is not None:  # the unit said it cannot evaluate these terms: no version minted
+            self.state, self.reason = State.COLLECTING, refused
+            self._next_validation_at = int(self.learner.samples * 1.5) + 1
+            return
         if self._retry is not None:  # a failed push of an earlier set is due again: no new version now
             self.state = State.COLLECTING
             self.reason = f"v{self._retry['version']} is pushed again first (round {self._retry['round']})"
@@ -809,6 +820,15 @@ class Session(RecoveryMixin):
             self._next_validation_at = 2 * self.learner.samples + 1
         else:
             self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
+            if result.nak_reason == int(NakReason.UNKNOWN_TERMS):  # final: no new version would help
+                names = self._pending[0]
+                tid = terms_id(names)
+                self.reason = (f"the unit does not know term set 0x{tid:04X} ({len(names)} terms: "
+                               f"{','.join(names)}): NAK UNKNOWN_TERMS to v{version}, so it keeps its set "
+                               "and this set is not pushed again this session; configure estimator.terms "
+                               "as a set in the unit's table (docs/protocol.md, section 4)")
+                self._unknown_terms[tid] = self.reason
+                log.error("unit %s: %s", self.hello.serial, self.reason)
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             self.state = State.COLLECTING
             if result.transient:  # BUSY, silence, link down: the same record again later

@@ -44,6 +44,24 @@ def terms_id(names: Iterable[str]) -> int:
     return binascii.crc_hqx(data, 0xFFFF)
 
 
+UNIT_ATOMS = ("gx", "gy", "gz", "temp", "dtemp", "t_on")
+"""The atoms a unit evaluates per sample (protocol.md, section 4), besides exp(-t_on/TAU), sin(F) and
+cos(F). The analysis may fit other columns; a unit's set may not use them."""
+
+
+def foreign_atoms(names: Iterable[str]) -> list[str]:
+    """The atoms of ``names`` that no unit evaluates (protocol.md, section 4), in order, each once."""
+    from gyrocal.model.terms import TermSpec  # the term grammar; ConfigError on a malformed name
+
+    out: list[str] = []
+    for term in TermSpec.parse(list(names)).terms:
+        for f in term.factors:
+            ok = f.atom in UNIT_ATOMS or f.atom.startswith(("exp(", "sin(", "cos("))
+            if not ok and f.atom not in out:
+                out.append(f.atom)
+    return out
+
+
 def register(names: Iterable[str]) -> int:
     """Add a term set to the registry and return its id; a hash collision raises ProtocolError."""
     canon = canonical(names)

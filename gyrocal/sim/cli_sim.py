@@ -24,8 +24,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
-from gyrocal.errors import ConfigError
+from gyrocal.errors import ConfigError, ProtocolError
+from gyrocal.protocol import termsets
 from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
@@ -81,6 +83,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grade", choices=("demo", "fibre", "tactical", "consumer"), default="demo",
                    help="unit grade preset: noise, bias instability, temperature sensitivity "
                         "(default demo: the seed-000 unit of the demo; see gyrocal/sim/grades.py)")
+    p.add_argument("--terms", action="append", default=[], metavar="NAMES|FILE.yaml",
+                   help="a further term set in the unit's table (it NAKs UNKNOWN_TERMS to any other): "
+                        "comma-separated names such as 1,gx,gy,gz,dtemp, or a YAML terms file as "
+                        "`gyrocal analyze` writes it; repeatable")
     f = p.add_argument_group("fault injection")
     f.add_argument("--nak-next", type=int, default=0, metavar="N", help="NAK the next N coefficient writes")
     f.add_argument("--drop-acks", type=int, default=0, metavar="N", help="ignore the next N writes silently")
@@ -167,6 +173,32 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError(f"--can-node-id {args.can_node_id}: must be a CAN node id 0 to 15")
 
 
+def _register_terms(specs: list[str]) -> None:
+    """Add ``--terms`` sets to the unit's table (the protocol's registry in this process)."""
+    for spec in specs:
+        path = Path(spec)
+        if path.suffix in (".yaml", ".yml") or path.exists():
+            try:
+                doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+            except (OSError, yaml.YAMLError) as err:
+                raise ConfigError(f"--terms {spec}: cannot read the terms file ({err})") from None
+            names = doc.get("terms") if isinstance(doc, dict) else doc
+            if not isinstance(names, list):
+                raise ConfigError(f"--terms {spec}: no `terms:` list in it; write `terms: [1, gx, ...]`")
+        else:
+            names = spec.split(",")
+        names = [str(n).strip() for n in names]
+        try:
+            foreign = termsets.foreign_atoms(names)
+            if foreign:
+                raise ConfigError(f"{', '.join(map(repr, foreign))} is not an atom a unit evaluates; "
+                                  f"build terms from {', '.join(termsets.UNIT_ATOMS)}, exp(-t_on/TAU), "
+                                  "sin(F) and cos(F)")
+            termsets.register(names)
+        except (ConfigError, ProtocolError) as err:
+            raise ConfigError(f"--terms {spec}: {err}") from None
+
+
 def _load_flash(unit: VirtualUnit, path: str | None) -> None:
     if not path or not Path(path).exists():
         return
@@ -183,6 +215,7 @@ def main(args: argparse.Namespace) -> int:
     if logging.getLogger().level > logging.INFO:  # a bus that failed to open warns again from __del__
         logging.getLogger("can").setLevel(logging.ERROR)
     _check(args)
+    _register_terms(args.terms)
     if args.link == "mavlink":
         from gyrocal.sim.autopilot_run import main as autopilot_main
 
