@@ -203,6 +203,29 @@ def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path
     assert len(errors) == 1 and "validation.block_s" in errors[0] and str(path) in errors[0]
 
 
+def test_the_sighup_reload_takes_new_terms_for_the_next_session(tmp_path: Path, caplog) -> None:
+    """Before, a reload replaced the estimator section but not the resolved term list the learner is
+    built from, so new terms were silently ignored until a restart."""
+    from gyrocal.daemon.engine import Engine
+
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\n")
+    eng = Engine.__new__(Engine)  # only the reload path: no link, no store
+    eng.cfg = load_config(path)
+
+    class _Notifier:
+        def reloading(self) -> None: ...
+        def ready(self) -> None: ...
+
+    eng.notifier = _Notifier()
+    names = ["1", "gx", "gy", "gz", "temp", "dtemp"]
+    path.write_text(f"link: {{url: /dev/x}}\nestimator: {{terms: {names!r}}}\n")
+    with caplog.at_level("INFO"):
+        eng._reload()
+    assert eng.cfg.terms == names
+    assert any("next switch-on" in r.getMessage() for r in caplog.records)
+
+
 # --- CAN: python-can's own configuration fills what link.can leaves out ---------------------------------
 
 @pytest.fixture

@@ -118,5 +118,9 @@ class CommandsMixin:
                     log.warning("SIGHUP: link settings changed; they take effect at the next restart")
                 for section in ("validation", "push", "monitor", "store", "still", "estimator"):
                     setattr(self.cfg, section, getattr(new, section))
+                if new.terms != self.cfg.terms:  # the learner of a session is built at its switch-on
+                    log.info("SIGHUP: estimator.terms changed to %s; they take effect at the next switch-on "
+                             "(or `gyrocal recalibrate`)", ",".join(new.terms))
+                    self.cfg.terms = new.terms
                 log.info("SIGHUP: configuration reloaded from %s", self.cfg.source)
         self.notifier.ready()
