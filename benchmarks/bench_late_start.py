@@ -1,6 +1,6 @@
 """A daemon that does not hear the unit from its first sample: what it learns, per case.
 
-    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,lossy,pty,ptylossy,can]
+    .venv/bin/python benchmarks/bench_late_start.py [--cases warmup,dtemp,gap,lossy,own,pty,ptylossy,can]
         [--seeds 3] [--runs 4] [--json]
 
 In simulated time through the daemon's own Session (tests/grade_harness.py), deterministic per seed.
@@ -20,6 +20,10 @@ daemon must rebuild both from what it heard.
   8 s, or 1 s from 15 s. Figure: the cut, per axis.
 - ``lossy``: the same unit and daemon from switch-on, on a link that loses a burst now and then
   (``LOSSY``). Figure: the cut, or no push within 150 s.
+- ``own``: the demo unit with a dT/dt drift of 0.02 / -0.015 / 0.01 deg/s per degC/s and the
+  daemon's own terms seed 000 + dtemp, 200 Hz, 300 s, on a clean link or one that loses 50 ms or
+  0.5 s in every 5 s. Once the daemon's first set is held, the unit compensates with the daemon's own
+  dtemp term. Figures: the pushes, the samples set aside, the samples learnt, the drift left.
 - ``pty`` and ``can`` (not in the default cases: real time, about a minute a run): the case of
   tests/test_indep_unit.py::test_held_temperature_rate_set_is_reconstructed, run ``--runs`` times:
   the independent unit as a process on a pty with that factory set, the real daemon opening the port
@@ -133,6 +137,37 @@ def lossy(seed: int, burst_s: float, every_s: float, within_s: float = 150.0) ->
         return _cut_row(run, unit, row)
 
 
+OWN_TEMP_RATE_DPS_PER_CPS = np.array([0.02, -0.015, 0.01])
+
+
+def own(seed: int, burst_s: float, every_s: float = 5.0, total_s: float = 300.0) -> dict[str, Any]:
+    """The demo unit with a dT/dt drift, the daemon's own terms seed 000 + dtemp, 200 Hz, on a link
+    that loses ``burst_s`` in every ``every_s`` from switch-on: after the daemon's first push the unit
+    compensates with the daemon's own dtemp term, so every later sample needs the unit's dT/dt."""
+    terms = [*SEED000_TERMS, "dtemp"]
+    termsets.register(terms)  # as the daemon's config does
+    truth = TruthModel(effects=Effects(temp_rate_dps_per_cps=OWN_TEMP_RATE_DPS_PER_CPS))
+    with tempfile.TemporaryDirectory() as d:
+        run = GradeRun.make(Path(d), rate_hz=200.0, seed=seed, truth=truth, estimator={"terms": terms})
+        run.switch_on()
+        t = 0.0
+        while t < total_s:
+            run.run(every_s - burst_s)
+            if burst_s:
+                run.unit.render(int(round(burst_s * 200.0)))  # lost on the link
+                run.now += burst_s
+            t += every_s
+        assert run.session is not None
+        st = run.session.status()
+        drift = run.unit.status()
+        return {"case": "own", "seed": seed, "burst_s": burst_s, "every_s": every_s,
+                "pushes": [[round(p["t"]), p["push"].get("status")] for p in run.pushes],
+                "dtemp_inexact_samples": st.get("dtemp_inexact_samples"),
+                "trained_samples": st.get("trained_samples"),
+                "drift_raw_dps": {a: round(v, 6) for a, v in drift["drift_rms_raw_dps"].items()},
+                "drift_left_dps": {a: round(v, 6) for a, v in drift["drift_rms_compensated_dps"].items()}}
+
+
 LOSSY_LIVE = (0.2, 5.0)
 """(burst lost [s], every [s]) of wall time on the ``ptylossy`` line."""
 
@@ -187,7 +222,7 @@ def live(run: int, link: str = "pty") -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", default="warmup,dtemp,gap,lossy")
+    p.add_argument("--cases", default="warmup,dtemp,gap,lossy,own")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--runs", type=int, default=4, help="runs of the pty, ptylossy and can cases")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of lines")
@@ -208,9 +243,11 @@ def main(argv: list[str] | None = None) -> int:
             rows += [gap(seed, at, down) for at, down in ((8.0, 3.0), (8.0, 0.3), (15.0, 1.0))]
         if "lossy" in cases:
             rows += [lossy(seed, burst, every) for burst, every in LOSSY]
+        if "own" in cases:
+            rows += [own(seed, burst) for burst in (0.0, 0.05, 0.5)]
         if not args.json:
             shown = ("warmup" in cases) + 5 * ("dtemp" in cases) + 3 * ("gap" in cases) \
-                + len(LOSSY) * ("lossy" in cases)
+                + len(LOSSY) * ("lossy" in cases) + 3 * ("own" in cases)
             for r in rows[-shown:]:
                 print(json.dumps(r), flush=True)
     for link in ("pty", "ptylossy", "can"):
