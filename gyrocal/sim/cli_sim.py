@@ -32,7 +32,7 @@ from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
 from gyrocal.sim.schedule import load_schedule, tumble
-from gyrocal.sim.truth import NOISE_FIELDS, set_noise
+from gyrocal.sim.truth import EFFECT_FIELDS, NOISE_FIELDS, set_effects, set_noise
 from gyrocal.sim.unit import Faults, VirtualUnit
 
 log = logging.getLogger(__name__)
@@ -55,6 +55,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--status-json", metavar="PATH", help="write the unit's status here (atomic, ~1 s)")
     p.add_argument("--noise", action="append", metavar="NAME=VALUE",
                    help=f"sensor noise beyond white, repeatable; NAME one of {', '.join(NOISE_FIELDS)}")
+    p.add_argument("--effect", action="append", metavar="NAME=VALUE",
+                   help=f"a systematic drift effect, repeatable; NAME one of {', '.join(EFFECT_FIELDS)}")
     p.add_argument("--record", metavar="LOG.csv", help="record what was sent (+ LOG.truth.csv)")
     p.add_argument("--flash", metavar="PATH", help="keep boot count and applied set in this JSON file")
     p.add_argument("--pty-link", metavar="PATH", help="symlink PATH to the pty slave (a stable name)")
@@ -228,6 +230,7 @@ def main(args: argparse.Namespace) -> int:
                     silence_for_s=args.silence_for, lose_burst_s=args.lose_burst,
                     lose_every_s=args.lose_every)
     truth = set_noise(grade_truth(args.grade, args.rate), args.noise)  # a grade, then --noise on top
+    truth = set_effects(truth, args.effect)
     unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)

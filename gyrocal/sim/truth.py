@@ -217,6 +217,37 @@ NOISE_FIELDS = ("noise_dps", "random_walk_dps_per_sqrt_s", "bias_instability_dps
 """The truth fields ``gyrocal sim --noise NAME=VALUE`` may set (units in their names)."""
 
 
+EFFECT_FIELDS = ("temp_dps_per_c", "temp2_dps_per_c2", "temp_rate_dps_per_cps", "warmup_dps", "warmup_tau_s",
+                 "periodic_dps", "periodic_hz")
+"""The systematic effects ``gyrocal sim --effect NAME=VALUE`` may set (units in their names)."""
+
+
+def set_effects(model: TruthModel, items: list[str] | None) -> TruthModel:
+    """Apply ``NAME=VALUE`` effects (VALUE one number, or x,y,z; signed amplitudes) to the model.
+
+    E.g. ``warmup_dps=0.01,-0.008,0.012`` with ``warmup_tau_s=60``: a unit whose drift decays after
+    switch-on, to run the daemon on terms that `gyrocal analyze` found. Raises ConfigError naming the
+    setting and the fix.
+    """
+    scalars = ("warmup_tau_s", "periodic_hz")
+    for item in items or []:
+        name, _, text = (x.strip() for x in item.partition("="))
+        if name not in EFFECT_FIELDS or not text:
+            raise ConfigError(f"--effect {item!r}: write NAME=VALUE, NAME one of {', '.join(EFFECT_FIELDS)}")
+        try:
+            vals = [float(v) for v in text.split(",")]
+        except ValueError:
+            raise ConfigError(f"--effect {item!r}: VALUE must be numbers joined by commas") from None
+        counts = (1,) if name in scalars else (1, 3)
+        if len(vals) not in counts or not all(math.isfinite(v) for v in vals) \
+                or (name in scalars and vals[0] <= 0):
+            raise ConfigError(f"--effect {item!r}: give " + ("one finite number > 0" if name in scalars
+                                                              else "1 or 3 finite numbers"))
+        setattr(model.effects, name, vals[0] if name in scalars else _vec3(tuple(vals) if len(vals) == 3
+                                                                           else vals[0]))
+    return model
+
+
 def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
     """Apply ``NAME=VALUE`` settings (VALUE one number, or x,y,z; flicker_band_s lo,hi) to the model.
 
