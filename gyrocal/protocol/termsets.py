@@ -119,8 +119,9 @@ class TempRate:
     """Longest gap [s of unit time] whose lost samples are filled in: their temperatures by a straight
     line between the samples on either side, their times on the unit's sample clock. The unit's means
     then differ from the host's only by the lost samples' noise and the temperature's curvature over
-    the gap (at most FILL_S^2 / 8 times |d2T/dt2|, 5e-4 degC for a 0.5 degC/s warm-up of tau 60 s
-    over 2 s). Such a copy still counts as the unit's: a link that loses a burst every few seconds
+    the gap (at most FILL_S^2 / 8 times |d2T/dt2|: 4e-3 degC over 2 s of a warm-up that starts at
+    0.5 degC/s with a 60 s time constant, which moves dT/dt by about 1e-4 degC/s once the window
+    holds 20 means). Such a copy still counts as the unit's: a link that loses a burst every few seconds
     (a USB-serial adapter that overruns, a busy CAN bus) would otherwise keep a unit with a dT/dt set
     out of learning for good (benchmarks/bench_late_start.py --cases lossy). A longer gap leaves the
     seconds around it seen in part, for WINDOW seconds."""
