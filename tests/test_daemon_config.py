@@ -284,3 +284,15 @@ def test_terms_a_unit_cannot_evaluate_are_refused_and_new_sets_are_registered(tm
     path.write_text(f"link: {{url: /dev/x}}\nestimator: {{terms: {names!r}}}\n")
     assert load_config(path).terms == names
     assert termsets.names_for(termsets.terms_id(names)) == tuple(names)
+
+
+def test_a_field_given_twice_is_refused_with_its_line(tmp_path: Path) -> None:
+    """PyYAML keeps the last of two equal keys silently: a second `push:` would undo the first."""
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\npush: {retries: 5}\nmonitor: {window_s: 10}\npush: {retries: 2}\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert f"{path}:4" in str(err.value) and "'push' appears twice; keep one" in str(err.value)
+    path.write_text("link: {url: /dev/x, url: /dev/y}\n")
+    with pytest.raises(ConfigError, match="'url' appears twice"):
+        load_config(path)

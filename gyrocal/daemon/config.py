@@ -188,6 +188,21 @@ class DaemonConfig:
     terms: list[str] = field(default_factory=lambda: list(SEED000_TERMS))
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses a key given twice in one mapping. PyYAML keeps the last one
+    silently, so a second `store:` or `push:` section would undo the first without a word."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"field {key!r} appears twice; keep one", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def default_config_path() -> Path:
     return Path(str(resources.files("gyrocal") / "configs" / DEFAULT_CONFIG))
 
@@ -197,7 +212,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     p = Path(path) if path is not None else default_config_path()
     name = str(p)
     try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+        doc = yaml.load(p.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)
     except FileNotFoundError:
         raise ConfigError(f"{name}: no such config file; pass an existing file to --config") from None
     except OSError as err:
