@@ -231,13 +231,7 @@ def set_effects(model: TruthModel, items: list[str] | None) -> TruthModel:
     """
     scalars = ("warmup_tau_s", "periodic_hz")
     for item in items or []:
-        name, _, text = (x.strip() for x in item.partition("="))
-        if name not in EFFECT_FIELDS or not text:
-            raise ConfigError(f"--effect {item!r}: write NAME=VALUE, NAME one of {', '.join(EFFECT_FIELDS)}")
-        try:
-            vals = [float(v) for v in text.split(",")]
-        except ValueError:
-            raise ConfigError(f"--effect {item!r}: VALUE must be numbers joined by commas") from None
+        name, vals = _setting("--effect", item, EFFECT_FIELDS)
         counts = (1,) if name in scalars else (1, 3)
         if len(vals) not in counts or not all(math.isfinite(v) for v in vals) \
                 or (name in scalars and vals[0] <= 0):
@@ -246,6 +240,17 @@ def set_effects(model: TruthModel, items: list[str] | None) -> TruthModel:
         setattr(model.effects, name, vals[0] if name in scalars else _vec3(tuple(vals) if len(vals) == 3
                                                                            else vals[0]))
     return model
+
+
+def _setting(flag: str, item: str, fields: tuple[str, ...]) -> tuple[str, list[float]]:
+    """``NAME=VALUE`` of ``--noise`` / ``--effect``: the name (one of ``fields``) and its numbers."""
+    name, _, text = (x.strip() for x in item.partition("="))
+    if name not in fields or not text:
+        raise ConfigError(f"{flag} {item!r}: write NAME=VALUE, NAME one of {', '.join(fields)}")
+    try:
+        return name, [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"{flag} {item!r}: VALUE must be numbers joined by commas") from None
 
 
 def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
@@ -258,13 +263,7 @@ def set_noise(model: TruthModel, items: list[str] | None) -> TruthModel:
     """
     scalars = ("noise_dps", "gm_tau_s", "lowpass_hz")
     for item in items or []:
-        name, _, text = (x.strip() for x in item.partition("="))
-        if name not in NOISE_FIELDS or not text:
-            raise ConfigError(f"--noise {item!r}: write NAME=VALUE, NAME one of {', '.join(NOISE_FIELDS)}")
-        try:
-            vals = [float(v) for v in text.split(",")]
-        except ValueError:
-            raise ConfigError(f"--noise {item!r}: VALUE must be numbers joined by commas") from None
+        name, vals = _setting("--noise", item, NOISE_FIELDS)
         counts = ((2,) if name == "flicker_band_s" else (3,) if name.startswith("line_")
                   else (1,) if name in scalars else (1, 3))
         if len(vals) not in counts or not all(math.isfinite(v) and v >= 0 for v in vals):
