@@ -16,10 +16,10 @@ from typing import Any
 
 import yaml
 
-from gyrocal.errors import ConfigError, ProtocolError
+from gyrocal.errors import ConfigError
 from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
-from gyrocal.model.terms import SEED000_TERMS, TermSpec
+from gyrocal.model.terms import SEED000_TERMS, read_terms_file
 from gyrocal.protocol import termsets
 
 DEFAULT_CONFIG = "default.yaml"
@@ -326,28 +326,14 @@ def _resolve_terms(value: str | list[Any], name: str) -> list[str]:
         if not path.is_absolute():
             path = Path(name).parent / path
         try:
-            doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except (OSError, yaml.YAMLError) as err:
-            raise ConfigError(
-                f"{name}: field 'estimator.terms' names {str(path)!r}, which cannot be read ({err}); "
-                "write `seed000`, a list of terms, or an existing terms file"
-            ) from None
-        names = doc.get("terms") if isinstance(doc, dict) else doc
-        if not isinstance(names, list):
-            raise ConfigError(f"{path}: field 'terms' missing; write `terms: [1, gx, ...]`")
-        names = [str(v) for v in names]
-    try:
-        TermSpec.parse(names)
+            names = read_terms_file(path)
+        except ConfigError as err:
+            raise ConfigError(f"{name}: field 'estimator.terms': {err}; write `seed000`, a list of terms, "
+                              "or an existing terms file") from None
+    try:  # the daemon evaluates the terms as the unit does, on what a sample carries; it registers the
+        # set (protocol.md, section 4), and whether the unit knows it, the unit says
+        termsets.register_unit_terms(names)
     except ConfigError as err:
-        raise ConfigError(f"{name}: field 'estimator.terms': {err}") from None
-    foreign = termsets.foreign_atoms(names)
-    if foreign:  # the daemon evaluates the terms as the unit does, on what a sample carries
-        raise ConfigError(f"{name}: field 'estimator.terms': {', '.join(map(repr, foreign))} is not an "
-                          f"atom a unit evaluates; build terms from {', '.join(termsets.UNIT_ATOMS)}, "
-                          "exp(-t_on/TAU), sin(F) and cos(F) (docs/protocol.md, section 4)")
-    try:  # the host registers its set (protocol.md, section 4); whether the unit knows it, the unit says
-        termsets.register(names)
-    except ProtocolError as err:
         raise ConfigError(f"{name}: field 'estimator.terms': {err}") from None
     return names
 

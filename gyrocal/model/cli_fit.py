@@ -29,17 +29,15 @@ import argparse
 import json
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
-import yaml
 
 from gyrocal.errors import ConfigError
 from gyrocal.logformat import AXES, LogData
 from gyrocal.model.methods import LMS, METHODS, make_estimator
 from gyrocal.model.normalise import Normaliser
 from gyrocal.model.prep import prepare
-from gyrocal.model.terms import SEED000_TERMS, TermSpec
+from gyrocal.model.terms import SEED000_TERMS, TermSpec, read_terms_file
 from gyrocal.readers import ReadOptions, accounting, add_arguments, read_any, read_from_args
 
 
@@ -63,16 +61,7 @@ def load_terms(args: argparse.Namespace) -> list[str]:
     if args.terms and args.terms_file:
         raise ConfigError("give --terms or --terms-file, not both")
     if args.terms_file:
-        path = args.terms_file
-        try:
-            doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-        except (OSError, yaml.YAMLError) as err:
-            raise ConfigError(f"{path}: cannot read the terms file ({err})") from err
-        names = doc.get("terms") if isinstance(doc, dict) else doc
-        if not isinstance(names, list) or not names or not all(isinstance(n, str | int) for n in names):
-            raise ConfigError(
-                f"{path}: field 'terms' must be a list of term names, e.g. terms: ['1', gx, temp]")
-        return [str(n) for n in names]
+        return read_terms_file(args.terms_file)
     if args.terms:
         return [n for arg in args.terms for n in arg.split(",") if n]
     return list(SEED000_TERMS)

@@ -20,8 +20,10 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import yaml
 
 from gyrocal.errors import ConfigError
 
@@ -161,6 +163,20 @@ class TermSpec:
 
 T_ORIGIN_KEY = "t_origin"
 """Log metadata key: ``switch_on`` when ``t`` is the unit's time since switch-on (docs/logformat.md)."""
+
+
+def read_terms_file(path: str | Path) -> list[str]:
+    """The term names of a terms file: YAML ``terms: [...]`` as `gyrocal analyze` writes it, or a bare
+    list. Read by `gyrocal fit --terms-file`, the daemon's ``estimator.terms`` and `gyrocal sim
+    --terms`; raises ConfigError naming the file and the fix."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"{path}: cannot read the terms file ({err})") from None
+    names = doc.get("terms") if isinstance(doc, dict) else doc
+    if not isinstance(names, list) or not names or not all(isinstance(n, str | int) for n in names):
+        raise ConfigError(f"{path}: field 'terms' must be a list of term names, e.g. terms: ['1', gx, temp]")
+    return [str(n) for n in names]
 
 
 def from_switch_on(metadata: Mapping[str, str]) -> bool:

@@ -16,8 +16,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from gyrocal.errors import ProtocolError
-from gyrocal.model.terms import SEED000_TERMS
+from gyrocal.errors import ConfigError, ProtocolError
+from gyrocal.model.terms import SEED000_TERMS, TermSpec
 from gyrocal.protocol.messages import SEQ_MODULO
 
 EXTENDED_TEMP_TERMS: tuple[str, ...] = SEED000_TERMS + ("temp", "temp^2", "dtemp", "temp*dtemp")
@@ -50,9 +50,8 @@ cos(F). The analysis may fit other columns; a unit's set may not use them."""
 
 
 def foreign_atoms(names: Iterable[str]) -> list[str]:
-    """The atoms of ``names`` that no unit evaluates (protocol.md, section 4), in order, each once."""
-    from gyrocal.model.terms import TermSpec  # the term grammar; ConfigError on a malformed name
-
+    """The atoms of ``names`` that no unit evaluates (protocol.md, section 4), in order, each once;
+    ConfigError on a malformed name."""
     out: list[str] = []
     for term in TermSpec.parse(list(names)).terms:
         for f in term.factors:
@@ -60,6 +59,22 @@ def foreign_atoms(names: Iterable[str]) -> list[str]:
             if not ok and f.atom not in out:
                 out.append(f.atom)
     return out
+
+
+def register_unit_terms(names: Iterable[str]) -> int:
+    """Register a set a unit is to evaluate (the daemon's ``estimator.terms``, `gyrocal sim --terms`)
+    and return its id. ConfigError when a name is malformed, uses an atom no unit evaluates (a column
+    only the analysis has) or collides with another set's id; the caller names where it came from."""
+    names = list(names)
+    foreign = foreign_atoms(names)
+    if foreign:
+        raise ConfigError(f"{', '.join(map(repr, foreign))} is not an atom a unit evaluates; build terms "
+                          f"from {', '.join(UNIT_ATOMS)}, exp(-t_on/TAU), sin(F) and cos(F) "
+                          "(docs/protocol.md, section 4)")
+    try:
+        return register(names)
+    except ProtocolError as err:
+        raise ConfigError(str(err)) from None
 
 
 def register(names: Iterable[str]) -> int:

@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from gyrocal.errors import ConfigError, ProtocolError
+from gyrocal.errors import ConfigError
+from gyrocal.model.terms import read_terms_file
 from gyrocal.protocol import termsets
 from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
@@ -179,25 +179,13 @@ def _register_terms(specs: list[str]) -> None:
     """Add ``--terms`` sets to the unit's table (the protocol's registry in this process)."""
     for spec in specs:
         path = Path(spec)
-        if path.suffix in (".yaml", ".yml") or path.exists():
-            try:
-                doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-            except (OSError, yaml.YAMLError) as err:
-                raise ConfigError(f"--terms {spec}: cannot read the terms file ({err})") from None
-            names = doc.get("terms") if isinstance(doc, dict) else doc
-            if not isinstance(names, list):
-                raise ConfigError(f"--terms {spec}: no `terms:` list in it; write `terms: [1, gx, ...]`")
-        else:
-            names = spec.split(",")
-        names = [str(n).strip() for n in names]
         try:
-            foreign = termsets.foreign_atoms(names)
-            if foreign:
-                raise ConfigError(f"{', '.join(map(repr, foreign))} is not an atom a unit evaluates; "
-                                  f"build terms from {', '.join(termsets.UNIT_ATOMS)}, exp(-t_on/TAU), "
-                                  "sin(F) and cos(F)")
-            termsets.register(names)
-        except (ConfigError, ProtocolError) as err:
+            if path.suffix in (".yaml", ".yml") or path.exists():
+                names = read_terms_file(path)
+            else:
+                names = [n.strip() for n in spec.split(",")]
+            termsets.register_unit_terms(names)
+        except ConfigError as err:
             raise ConfigError(f"--terms {spec}: {err}") from None
 
 
