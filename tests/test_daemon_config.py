@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -181,20 +182,25 @@ def test_cross_field_and_convergence_ranges(tmp_path: Path) -> None:
         load_config(path)
 
 
-def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path: Path, caplog) -> None:
-    """The engine's reload path (load_config on SIGHUP): a refused reload keeps the config, one line."""
+def _reload_only_engine(path: Path) -> Any:
+    """An Engine with just what its SIGHUP reload path uses: the config from ``path`` and a notifier."""
     from gyrocal.daemon.engine import Engine
-
-    path = tmp_path / "c.yaml"
-    path.write_text("link: {url: /dev/x}\nvalidation: {block_s: 0.5}\n")
-    eng = Engine.__new__(Engine)  # only the reload path: no link, no store
-    eng.cfg = load_config(path)
 
     class _Notifier:
         def reloading(self) -> None: ...
         def ready(self) -> None: ...
 
+    eng = Engine.__new__(Engine)  # only the reload path: no link, no store
+    eng.cfg = load_config(path)
     eng.notifier = _Notifier()
+    return eng
+
+
+def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path: Path, caplog) -> None:
+    """The engine's reload path (load_config on SIGHUP): a refused reload keeps the config, one line."""
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\nvalidation: {block_s: 0.5}\n")
+    eng = _reload_only_engine(path)
     path.write_text("link: {url: /dev/x}\nvalidation: {block_s: 0}\npush: {ack_timeout_s: -1}\n")
     with caplog.at_level("ERROR"):
         eng._reload()
@@ -206,18 +212,9 @@ def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path
 def test_the_sighup_reload_takes_new_terms_for_the_next_session(tmp_path: Path, caplog) -> None:
     """Before, a reload replaced the estimator section but not the resolved term list the learner is
     built from, so new terms were silently ignored until a restart."""
-    from gyrocal.daemon.engine import Engine
-
     path = tmp_path / "c.yaml"
     path.write_text("link: {url: /dev/x}\n")
-    eng = Engine.__new__(Engine)  # only the reload path: no link, no store
-    eng.cfg = load_config(path)
-
-    class _Notifier:
-        def reloading(self) -> None: ...
-        def ready(self) -> None: ...
-
-    eng.notifier = _Notifier()
+    eng = _reload_only_engine(path)
     names = ["1", "gx", "gy", "gz", "temp", "dtemp"]
     path.write_text(f"link: {{url: /dev/x}}\nestimator: {{terms: {names!r}}}\n")
     with caplog.at_level("INFO"):

@@ -161,7 +161,9 @@ def test_daemon_and_unit_over_a_pty_push_and_cut_drift_tenfold(tmp_path: Path) -
         stop(sim)
 
 
-def test_daemon_and_unit_over_can_udp_multicast_push_and_cut_drift_tenfold(tmp_path: Path) -> None:
+def _can_push_checked(tmp_path: Path, *sim_args: str) -> dict[str, Any]:
+    """Daemon first, then the sim (``sim_args`` added) on a udp_multicast bus; the first acked push is
+    read back and cuts the drift 10x. Returns the daemon's status then (both processes stopped)."""
     port = free_udp_port()
     can = {"interface": "udp_multicast", "channel": "239.74.163.2", "port": port}
     daemon, sock = start_daemon(tmp_path, {"kind": "can", "can": can})
@@ -169,37 +171,27 @@ def test_daemon_and_unit_over_can_udp_multicast_push_and_cut_drift_tenfold(tmp_p
     try:
         wait_for(lambda: status(sock), 20, "the daemon's control socket", tmp_path)
         sim = start_sim(tmp_path, "--link", "can", "--can-interface", "udp_multicast",
-                        "--can-channel", can["channel"], "--can-port", str(port))
+                        "--can-channel", can["channel"], "--can-port", str(port), *sim_args)
         st = wait_for(lambda: _acked(sock), 120, "an acked push over CAN", tmp_path)
         assert st["last_push"]["readback_ok"]
         _check_tenfold(tmp_path)
+        assert daemon.poll() is None
+        return st
     finally:
         stop(daemon)
         if sim is not None:
             stop(sim)
+
+
+def test_daemon_and_unit_over_can_udp_multicast_push_and_cut_drift_tenfold(tmp_path: Path) -> None:
+    _can_push_checked(tmp_path)
 
 
 def test_over_can_a_link_that_loses_a_burst_every_2_s_still_gets_the_unit_calibrated(tmp_path: Path) -> None:
     """0.1 s of samples lost in every 2 s of unit time (`gyrocal sim --lose-burst 0.1 --lose-every 2`)."""
-    port = free_udp_port()
-    can = {"interface": "udp_multicast", "channel": "239.74.163.2", "port": port}
-    daemon, sock = start_daemon(tmp_path, {"kind": "can", "can": can})
-    sim = None
-    try:
-        wait_for(lambda: status(sock), 20, "the daemon's control socket", tmp_path)
-        sim = start_sim(tmp_path, "--link", "can", "--can-interface", "udp_multicast",
-                        "--can-channel", can["channel"], "--can-port", str(port),
-                        "--lose-burst", "0.1", "--lose-every", "2")
-        st = wait_for(lambda: _acked(sock), 120, "an acked push over a lossy CAN link", tmp_path)
-        assert st["last_push"]["readback_ok"]
-        _check_tenfold(tmp_path)
-        assert st["link"]["errors"]["lost_samples"] >= 40, st["link"]["errors"]  # 50 per burst at 500 Hz
-        assert unit_status(tmp_path)["lost_on_link"] > 0
-        assert daemon.poll() is None
-    finally:
-        stop(daemon)
-        if sim is not None:
-            stop(sim)
+    st = _can_push_checked(tmp_path, "--lose-burst", "0.1", "--lose-every", "2")
+    assert st["link"]["errors"]["lost_samples"] >= 40, st["link"]["errors"]  # 50 per burst at 500 Hz
+    assert unit_status(tmp_path)["lost_on_link"] > 0
 
 
 def test_garbage_and_a_unit_that_never_says_hello_leave_the_daemon_waiting_and_saying_why(

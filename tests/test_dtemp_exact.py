@@ -22,18 +22,26 @@ from tests.indep.inprocess import held_dtemp_run, replaced_factory_set
 from tests.indep.truth import temperature
 
 
+def _fed_in_chunks(t: np.ndarray, temp: np.ndarray, seq: np.ndarray | None, keep: np.ndarray,
+                   chunks: int) -> tuple[np.ndarray, np.ndarray]:
+    """dtemp [degC/s] and exactness of a fresh copy fed the samples ``keep`` in uneven chunks, as a
+    link delivers them; NaN and False where a sample never arrived."""
+    copy = TempRate()
+    d = np.full(t.size, np.nan)
+    ok = np.zeros(t.size, dtype=bool)
+    for part in np.array_split(keep, chunks):
+        d[part], ok[part] = copy.update_exact(t[part], temp[part], None if seq is None else seq[part])
+    return d, ok
+
+
 def test_a_copy_started_late_is_marked_inexact_until_its_window_is_the_units() -> None:
     rate = 100.0
     t = np.arange(0, 40 * rate) / rate
     temp = np.round(temperature(t, 20.0) / 0.01) * 0.01  # a warm-up, as sent
-    unit, early, late = TempRate(), TempRate(), TempRate()
-    truth = unit.update(t, temp)
+    truth = TempRate().update(t, temp)
     start = int(2.3 * rate)
-    d_early, ok_early = early.update_exact(t, temp)
-    d_late = np.full(t.size, np.nan)
-    ok_late = np.zeros(t.size, dtype=bool)
-    for part in np.array_split(np.arange(start, t.size), 37):  # fed in uneven chunks, as a link delivers
-        d_late[part], ok_late[part] = late.update_exact(t[part], temp[part])
+    d_early, ok_early = TempRate().update_exact(t, temp)
+    d_late, ok_late = _fed_in_chunks(t, temp, None, np.arange(start, t.size), 37)
     assert ok_early.all() and np.array_equal(d_early, truth)  # seen from the unit's first second
     assert not ok_late[start:int(23 * rate)].any() and ok_late[int(24 * rate):].all()
     assert np.max(np.abs(d_late[start:int(23 * rate)] - truth[start:int(23 * rate)])) > 0.01  # degC/s
@@ -84,12 +92,8 @@ def test_a_3_s_gap_leaves_the_window_in_part_for_20_s_but_a_lost_frame_does_not(
     truth = TempRate().update(t, temp)
     drop = (seq >= int(8.2 * rate)) & (seq < int(11.2 * rate))  # a link down for 3 s
     drop[int(30.5 * rate)] = True  # and one frame lost later (filled in)
-    copy = TempRate()
     keep = np.flatnonzero(~drop)
-    d = np.full(t.size, np.nan)
-    ok = np.zeros(t.size, dtype=bool)
-    for part in np.array_split(keep, 53):
-        d[part], ok[part] = copy.update_exact(t[part], temp[part], seq[part])
+    d, ok = _fed_in_chunks(t, temp, seq, keep, 53)
     assert ok[: int(8.2 * rate)].all()  # from seq 0, before the gap: the unit's own
     after = keep[(t[keep] >= 11.2) & (t[keep] < 32)]
     assert not ok[after].any()  # seconds 8 and 11 seen in part, 9 and 10 not at all
@@ -120,11 +124,7 @@ def test_bursts_lost_on_the_link_are_filled_in_and_the_copy_stays_the_units() ->
     keep = np.flatnonzero(~drop)
     err = {}
     for name, given in (("filled", seq), ("received only", None)):
-        copy = TempRate()
-        d = np.full(t.size, np.nan)
-        ok = np.zeros(t.size, dtype=bool)
-        for part in np.array_split(keep, 77):
-            d[part], ok[part] = copy.update_exact(t[part], temp[part], None if given is None else given[part])
+        d, ok = _fed_in_chunks(t, temp, given, keep, 77)
         assert ok[keep].all()
         err[name] = float(np.max(np.abs(d - truth)[keep]))
     assert err["filled"] < 4e-4 and err["received only"] > 0.01, err  # degC/s
