@@ -120,6 +120,18 @@ def gap(seed: int, at_s: float, down_s: float) -> dict[str, Any]:
         return _cut_row(run, unit, {"case": "gap", "seed": seed, "at_s": at_s, "down_s": down_s})
 
 
+def _lose_bursts(run: GradeRun, burst_s: float, every_s: float, total_s: float, until: Any = None) -> None:
+    """Run ``total_s`` of unit time from switch-on, ``burst_s`` of every ``every_s`` of it rendered by
+    the unit but lost on the link; stop early once ``until(run)``."""
+    t = 0.0
+    while t < total_s and not (until is not None and until(run)):
+        run.run(every_s - burst_s, until)
+        if burst_s:
+            run.unit.render(int(round(burst_s * run.rate_hz)))  # lost on the link
+            run.now += burst_s
+        t += every_s
+
+
 def lossy(seed: int, burst_s: float, every_s: float, within_s: float = 150.0) -> dict[str, Any]:
     """The same unit and daemon from switch-on, on a link that loses ``burst_s`` of samples every
     ``every_s`` (a USB-serial adapter that overruns, a CAN bus that is busy): the first push within
@@ -127,12 +139,7 @@ def lossy(seed: int, burst_s: float, every_s: float, within_s: float = 150.0) ->
     with tempfile.TemporaryDirectory() as d:
         run, unit = held_dtemp_run(Path(d), seed, RATE_HZ)
         run.switch_on()
-        t = 0.0
-        while t < within_s and not replaced_factory_set(run):
-            run.run(every_s - burst_s, replaced_factory_set)
-            unit.render(int(round(burst_s * RATE_HZ)))  # lost on the link
-            run.now += burst_s
-            t += every_s
+        _lose_bursts(run, burst_s, every_s, within_s, replaced_factory_set)
         row = {"case": "lossy", "seed": seed, "burst_s": burst_s, "every_s": every_s}
         return _cut_row(run, unit, row)
 
@@ -145,18 +152,12 @@ def own(seed: int, burst_s: float, every_s: float = 5.0, total_s: float = 300.0)
     that loses ``burst_s`` in every ``every_s`` from switch-on: after the daemon's first push the unit
     compensates with the daemon's own dtemp term, so every later sample needs the unit's dT/dt."""
     terms = [*SEED000_TERMS, "dtemp"]
-    termsets.register(terms)  # as the daemon's config does
+    termsets.register(terms)  # the daemon's config does so now; 856f8f4's did not (its "before" row)
     truth = TruthModel(effects=Effects(temp_rate_dps_per_cps=OWN_TEMP_RATE_DPS_PER_CPS))
     with tempfile.TemporaryDirectory() as d:
         run = GradeRun.make(Path(d), rate_hz=200.0, seed=seed, truth=truth, estimator={"terms": terms})
         run.switch_on()
-        t = 0.0
-        while t < total_s:
-            run.run(every_s - burst_s)
-            if burst_s:
-                run.unit.render(int(round(burst_s * 200.0)))  # lost on the link
-                run.now += burst_s
-            t += every_s
+        _lose_bursts(run, burst_s, every_s, total_s)
         assert run.session is not None
         st = run.session.status()
         drift = run.unit.status()

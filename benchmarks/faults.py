@@ -573,17 +573,13 @@ HISTORY = 5000
 
 
 def sc_long_history(rig: Rig) -> Result:
-    from bench_store import history_record
+    from bench_store import write_history
 
     res = Result("long_history", rig.link, f"{HISTORY:,} versions of the unit already in the store, "
                  "store.keep_versions 1000; then a push")
     udir = rig.state / "units" / str(SERIAL)
     udir.mkdir(parents=True)
-    rng = random.Random(1)
-    for v in range(1, HISTORY + 1):
-        rec = history_record(v, rng)
-        rec["coefficients_dps"] = [[0.0] * len(rec["terms"]) for _ in range(3)]  # no head start
-        (udir / f"v{v:06d}.json").write_text(json.dumps(rec))
+    write_history(udir, HISTORY, random.Random(1), zero_coefficients=True)
     t0 = time.monotonic()
     rig.start_daemon()
     rig.start_sim()
