@@ -133,6 +133,7 @@ _BAD_VALUES: dict[str, list[object]] = {
     "push.min_cut": [1, 0.5],
     "push.wander_horizon_s": [0, -600],
     "store.keep_versions": [-1],
+    "site.latitude_deg": [-91, 90.5, float("nan")],
 }
 
 

@@ -366,6 +366,44 @@ def test_link_vanishes_and_returns_the_daemon_reconnects_and_recalibrates(tmp_pa
         stop(sim)
 
 
+def test_another_unit_plugged_in_without_a_hello_is_never_calibrated_under_the_last_unit_s_serial(
+        tmp_path: Path) -> None:
+    """Unit 4242 is calibrated; its cable is pulled and unit 888, which never sends a HELLO, is
+    plugged into the same port. The sample sequence restarts, and the daemon used to take that as
+    4242's restart: it pushed to 888 and stored the set as 4242's (found by an operator's audit).
+    Now it asks who the unit is, learns meanwhile, and stores and pushes nothing until it hears."""
+    pty = tmp_path / "unit.pty"
+    sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty))
+    daemon = None
+    try:
+        wait_for(lambda: pty.exists(), 15, "the pty")
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(pty), "reconnect_max_s": 0.5})
+        wait_for(lambda: _acked(sock), 120, "unit 4242's push", tmp_path)
+        udir = tmp_path / "state" / "units"
+        before = sorted(p.name for p in (udir / "4242").iterdir())
+        sim.kill()
+        sim.wait(5)
+        sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty), "--serial", "888",
+                        "--never-hello", name="other")
+        st = wait_for(lambda: (s := status(sock)).get("reason", "").startswith(
+            "the sample sequence restarted without a HELLO") and s, 30, "the restart to be seen", tmp_path)
+        time.sleep(12)  # a warm-started session pushes its bias-only set about 3 s after it starts
+        st = status(sock)
+        assert "without a HELLO" in st["reason"] and st["state"] != "PUSHING", st["reason"]
+        assert sorted(p.name for p in (udir / "4242").iterdir()) == before
+        assert not (udir / "888").exists()
+        assert st["trained_samples"] > 0  # it learns meanwhile
+        assert unit_status(tmp_path, "other").get("applied_version") in (None, 0)
+        out = subprocess.run([*PY, "rollback", "--socket", str(sock)], capture_output=True, text=True,
+                             timeout=30)
+        assert out.returncode != 0 and "has not said who it is" in out.stdout + out.stderr
+        assert daemon.poll() is None
+    finally:
+        if daemon is not None:
+            stop(daemon)
+        stop(sim)
+
+
 def test_daemon_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
     addr = str(tmp_path / "notify.sock")
     rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

@@ -166,3 +166,21 @@ def test_an_extended_model_with_temperature_terms_runs_and_pushes(tmp_path: Path
     assert st["applied_terms"] == terms
     for a in "xyz":
         assert st["drift_rms_compensated_dps"][a] * 10 <= st["drift_rms_raw_dps"][a]
+
+
+def test_the_measured_rate_comes_from_sample_time_stamps_in_any_block_size(tmp_path: Path) -> None:
+    """A CAN link hands the engine a sample or two at a time: status said rate_hz None there, and on a
+    serial link 500.0000000011653 (found by a unit built from docs/protocol.md alone)."""
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.engine import Engine
+    from gyrocal.daemon.ring import SAMPLE_DTYPE
+
+    eng = Engine(load_config(None, {"state_dir": str(tmp_path), "control_socket": str(tmp_path / "c")}))
+    block = np.zeros(400, dtype=SAMPLE_DTYPE)
+    block["seq"] = np.arange(400)
+    block["t"] = np.arange(400) / 200.0 + 1e-7 * np.sin(np.arange(400))  # a clock with jitter
+    block["seq"][200:] += 7  # seven samples lost on the link: no interval across the gap
+    block["t"][200:] += 7 / 200.0
+    for k in range(400):  # one sample per block
+        eng._feed(block[k:k + 1], 0.0)
+    assert eng.rate_hz == 200.0

@@ -72,7 +72,8 @@ def test_the_serial_decoder_drops_and_counts_a_nan_report() -> None:
     assert dec.stats.bad_values == 1 and dec.stats.crc_errors == 0
 
 
-def test_an_unwritable_store_defers_the_push_and_it_goes_out_when_the_store_returns(tmp_path: Path) -> None:
+def test_an_unwritable_store_defers_the_push_and_it_goes_out_when_the_store_returns(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     h = Harness.make(tmp_path)
     real_add = h.store.add
 
@@ -81,10 +82,15 @@ def test_an_unwritable_store_defers_the_push_and_it_goes_out_when_the_store_retu
 
     h.store.add = disk_full  # type: ignore[method-assign]
     h.switch_on()
-    h.run(60, until=lambda h: h.session is not None and h.session.store_error is not None)
+    with caplog.at_level("INFO", logger="gyrocal.session"):
+        h.run(60, until=lambda h: h.session is not None and h.session.store_error is not None)
+        h.run(60)  # a minute of a full disk: one line for it, not one per retry (an operator's audit)
     s = h.session
     assert s is not None and s.store_error is not None
     assert "store unavailable" in s.status()["faults"]["store"]
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("store unavailable" in m for m in said) == 1, said
+    assert sum("estimator converged" in m for m in said) == 1, said
     assert h.unit.writes == {"acked": 0, "naked": 0, "dropped": 0, "acks_lost": 0}  # never an unknown set
     h.store.add = real_add  # type: ignore[method-assign]
     h.run(60, until=_acked)
@@ -204,3 +210,35 @@ def test_fault_campaign_fast_scenarios_on_a_pty(name: str) -> None:
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     res = _campaign().run_one(name, "pty")
     assert res.up and res.agree and res.ok, res
+
+
+def test_status_follows_the_unit_s_read_back_after_a_push(tmp_path: Path) -> None:
+    """The push's own read-back updates unit_set: it said 'the unit holds no set' while the unit
+    held the v1 just acked and read back (found by a unit built from docs/protocol.md alone)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_acked)
+    s = h.session
+    assert s is not None and _acked(h)
+    unit_set = s.status()["unit_set"]
+    assert unit_set["agree"] and unit_set["unit_version"] == 1, unit_set
+    assert unit_set["store_status"] == "acked"
+
+
+def test_a_read_back_that_differs_from_the_stored_version_is_one_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_acked)
+    s = h.session
+    assert s is not None
+    rec = h.store.get(4242, 1)
+    other = tuple(tuple(c + 1e-4 for c in row) for row in rec.coefficients_dps)
+    lie = CoeffReport(1, SEED000_ID, other)  # another tool wrote its own v1 into the unit
+    with caplog.at_level("INFO", logger="gyrocal.session"):
+        s.on_message(lie, h.now)
+        s.on_message(lie, h.now)
+    said = [r for r in caplog.records if "differs from the stored v1" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelname == "WARNING"
+    assert not s.status()["unit_set"]["agree"]
+    assert h.store.get(4242, 1).coefficients_dps == rec.coefficients_dps  # never "fixed"

@@ -44,7 +44,9 @@ class CommandsMixin:
             if cmd == "recalibrate":
                 if self.last_hello is None:
                     return {"ok": False, "error": "no unit has announced itself (HELLO) yet"}
+                guess = None if self.session is None else self.session.unconfirmed
                 self._start_session(self.last_hello, now)
+                self.session.unconfirmed = guess  # still no HELLO from the unit since its restart
                 return {"ok": True, "message": "new calibration session started"}
             if cmd in ("rollback", "push"):
                 return self._push_command(req, now)
@@ -59,6 +61,9 @@ class CommandsMixin:
             return {"ok": False, "error": "no unit session yet; wait for the unit's HELLO"}
         if s.state is State.PUSHING:
             return {"ok": False, "error": "a push is already under way; try again in a few seconds"}
+        if s.unconfirmed is not None:
+            return {"ok": False, "error": "the unit restarted without a HELLO and has not said who it is "
+                                          "yet; nothing was pushed (check `gyrocal status`)"}
         serial = s.hello.serial
         if req["cmd"] == "rollback":
             target = req.get("to")
@@ -73,6 +78,12 @@ class CommandsMixin:
                 rec = self.store.get(serial, int(target))
                 if rec is None:
                     return {"ok": False, "error": f"unit {serial} has no calibration v{target}"}
+                if rec.push.get("status") not in APPLIED_STATUSES:
+                    return {"ok": False, "error": (
+                        f"unit {serial} never verifiably held v{target} (its push ended "
+                        f"{rec.push.get('status')!r}); a rollback goes back to a set the unit held. To "
+                        f"send it anyway as a new version: gyrocal push --file FILE with its terms and "
+                        f"coefficients")}
             why = check_set(list(rec.terms), rec.coefficients_dps)
             if why is not None:
                 return {"ok": False, "error": f"stored v{rec.version} cannot be pushed: {why}"}
@@ -92,7 +103,8 @@ class CommandsMixin:
             rec = self.store.add(CalibrationRecord(
                 serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
                 uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
-                session={"boot_count": s.hello.boot_count}, push={"status": "pending"}),
+                session={"boot_count": s.hello.boot_count, "fw": s.hello.fw_version},
+                push={"status": "pending"}),
                 min_version=s.version_floor())
         except Exception as err:  # never a unit set the store does not know: refuse the push
             return {"ok": False, "error": f"store unavailable ({err}); nothing was pushed"}
@@ -116,7 +128,10 @@ class CommandsMixin:
             else:
                 if new.link != self.cfg.link:
                     log.warning("SIGHUP: link settings changed; they take effect at the next restart")
-                for section in ("validation", "push", "monitor", "store", "still", "estimator"):
+                if new.site != self.cfg.site:  # a session reads it when it starts
+                    log.info("SIGHUP: site.latitude_deg changed to %s; it takes effect at the next "
+                             "switch-on (or `gyrocal recalibrate`)", new.site["latitude_deg"])
+                for section in ("validation", "push", "monitor", "store", "still", "estimator", "site"):
                     setattr(self.cfg, section, getattr(new, section))
                 if new.terms != self.cfg.terms:  # the learner of a session is built at its switch-on
                     log.info("SIGHUP: estimator.terms changed to %s; they take effect at the next switch-on "

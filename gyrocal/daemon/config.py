@@ -78,6 +78,11 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "store": {
         "keep_versions": ((int,), 1000, "write how many calibration versions to keep per unit, or 0 for all"),
     },
+    "site": {
+        "latitude_deg": ((int, float, type(None)), None,
+                         "write the latitude where the unit is calibrated, in degrees, north positive "
+                         "(-90 to 90), or leave it out"),
+    },
     "still": {
         "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
         "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
@@ -160,6 +165,7 @@ _RANGES: dict[str, Range] = {
     "push.min_cut": _gt(1, 1e6),
     "push.wander_horizon_s": _gt(0, 1e7, "s"),
     "store.keep_versions": Range(0, 10**9),
+    "site.latitude_deg": Range(-90, 90, unit="deg"),
 }
 
 _TOP = {
@@ -180,6 +186,7 @@ class DaemonConfig:
     push: dict[str, Any]
     monitor: dict[str, Any]
     store: dict[str, Any]
+    site: dict[str, Any]
     still: dict[str, Any]
     state_dir: Path
     control_socket: Path

@@ -56,7 +56,7 @@ from gyrocal.daemon.session import Session
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
 from gyrocal.drivers import open_link
-from gyrocal.protocol.messages import Hello, HelloRequest
+from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
 
 log = logging.getLogger("gyrocal.engine")
 _COUNTS = re.compile(r"\d+(\.\d+)?")
@@ -112,7 +112,9 @@ class Engine(CommandsMixin):
         self.session: Session | None = None
         self.last_hello: Hello | None = None
         self.detector = self._new_detector(1000.0)
-        self.rate_hz: float | None = None
+        self.rate_hz: float | None = None  # measured from the samples' time stamps
+        self._rate_dts: deque[float] = deque(maxlen=self.RATE_WINDOW)
+        self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
@@ -296,6 +298,8 @@ class Engine(CommandsMixin):
     def _tick(self, now: float) -> None:
         if self.session is not None:
             self.session.tick(now)
+            if self.session.unconfirmed is not None and now >= self._next_hello_request:
+                self._ask_hello(now)  # every 2 s, as before the first HELLO
         elif now >= self._next_hello_request and self.ring.pushed:
             self._ask_hello(now)
 
@@ -373,6 +377,10 @@ class Engine(CommandsMixin):
                 # an answer to a HELLO_REQUEST, or the switch-on HELLO still in the port's buffer
                 log.debug("HELLO from unit %d again (boot %d): same switch-on, session continues",
                           msg.serial, msg.boot_count)
+                if s.unconfirmed is not None:
+                    log.info("HELLO from unit %d (boot %d) confirms who restarted its samples: same session",
+                             msg.serial, msg.boot_count)
+                    s.unconfirmed = None
                 return
             self.last_hello = msg
             if (s is not None and s.hello.serial == msg.serial and self._seq_session_at is not None
@@ -382,6 +390,7 @@ class Engine(CommandsMixin):
                          "same session",
                          msg.serial, msg.boot_count)
                 s.hello = msg
+                s.unconfirmed = None
                 self._seq_session_at = None
                 return
             log.info("HELLO from unit %d (firmware %s, boot %d): switch-on, new session",
@@ -448,17 +457,22 @@ class Engine(CommandsMixin):
             log.info("unit samples again after a silence")
         for kind, part in self.seq.feed(block):
             if kind == "restart" and self.last_hello is not None:
-                log.warning("sample sequence went back to %d for %d samples in a row: the unit restarted",
+                log.warning("sample sequence went back to %d for %d samples in a row: the unit restarted; "
+                            "asking it who it is (HELLO_REQUEST), nothing is pushed until it answers",
                             int(part["seq"][0]), part.size)
                 self._start_session(self.last_hello, now)
                 self._seq_session_at = now
+                # another unit may have been plugged in: until a HELLO names it, the session learns
+                # but stores and pushes nothing under the last unit's serial
+                self.session.unconfirmed = (
+                    f"the sample sequence restarted without a HELLO: waiting for the unit to say who it "
+                    f"is (HELLO_REQUEST sent); learning meanwhile, as unit {self.last_hello.serial} "
+                    "until it answers, but pushing nothing")
+                self._ask_hello(now)
             self._feed(part, now)
 
     def _feed(self, block: np.ndarray, now: float) -> None:
-        if block.size > 8:
-            dt = np.median(np.diff(block["t"]))
-            if dt > 0:
-                self.rate_hz = 1.0 / dt
+        self._measure_rate(block)
         if self.session is None:
             self.samples_before_hello += block.size
             return
@@ -466,6 +480,23 @@ class Engine(CommandsMixin):
         self.session.feed(decided, still, now)
         if decided.size:
             self._record_latency(self.clock() - decided["rx"])
+
+    RATE_WINDOW = 256
+    """Sample intervals [s] the measured rate is the median of: consecutive seq only, across blocks
+    (a CAN link hands the engine one or two samples at a time)."""
+
+    def _measure_rate(self, block: np.ndarray) -> None:
+        """``rate_hz`` [Hz] from the samples' own time stamps (the unit's clock), for status and for a
+        unit whose HELLO does not state its rate."""
+        seq = block["seq"].astype(np.int64)
+        t = block["t"].astype(np.float64)
+        if self._rate_last is not None:
+            seq, t = np.r_[self._rate_last[0], seq], np.r_[self._rate_last[1], t]
+        self._rate_last = (int(seq[-1]), float(t[-1]))
+        dt = np.diff(t)[(np.diff(seq) % SEQ_MODULO) == 1]
+        self._rate_dts.extend(dt[dt > 0][-self.RATE_WINDOW:].tolist())
+        if len(self._rate_dts) >= 8:
+            self.rate_hz = round(1.0 / float(np.median(self._rate_dts)), 3)
 
     def _record_latency(self, lat_s: np.ndarray) -> None:
         """Keep the newest latencies: from a sample's arrival (rx) to the weights having learnt it."""

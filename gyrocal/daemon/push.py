@@ -212,7 +212,9 @@ class PushTransaction:
     def _finish(self, status: str, ok: bool, readback_ok: bool = False, transient: bool = False) -> None:
         self.phase = PushPhase.DONE if ok else PushPhase.FAILED
         self.result = PushResult(status, self.attempts, self.acked_crc, readback_ok, list(self.reasons),
-                                 transient=transient and not ok, nak_reason=self.nak_reason)
+                                 transient=transient and not ok,
+                                 # the NAK that ended it; an earlier attempt's stays in reasons
+                                 nak_reason=self.nak_reason if status == "nak" else None)
         level = logging.INFO if ok else logging.ERROR
         log.log(level, "push v%d ended: %s after %d attempt(s)", self.write.version, status, self.attempts)
 

@@ -76,6 +76,7 @@ from gyrocal.daemon.poses import PoseLog
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
 from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
+from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello, NakReason
@@ -209,6 +210,7 @@ class Session(RecoveryMixin):
         self._bias_pushed = False
         self._push_prediction: dict[str, Any] = {}
         self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
+        self._latitude: float | None = cfg.site["latitude_deg"]  # [deg]: the Earth rate's vertical part
         self._next_check = now
         self._next_validation_at = 0
         self._validated_at = 0  # learner samples at the last validation
@@ -217,6 +219,8 @@ class Session(RecoveryMixin):
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
+        self._said_converged = False  # the "estimator converged" line of this stretch was logged
+        self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -242,6 +246,10 @@ class Session(RecoveryMixin):
                     new = AppliedSet(self.push.write.version, terms_id(names), tuple(names), coeffs)
                     self._switch = (new, last_seq)
                 self._after_push(now)
+                if self.push is None and isinstance(msg, CoeffReport) and check_report(msg) is None:
+                    # the push's read-back is a read of the unit's set like any other: the store and
+                    # status's unit_set follow it (it said "no set" after v1 was acked and read back)
+                    self._reconcile(msg)
                 return
         if isinstance(msg, CoeffReport):
             self.on_report(msg, now)
@@ -310,6 +318,9 @@ class Session(RecoveryMixin):
         elif exact.all():
             self._inexact_said = False
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
+        if self._latitude is not None:  # true rate at rest, not drift (gyrocal/model/earth.py)
+            out = out - vertical_earth_rate_dps(
+                np.column_stack([samples["ax"], samples["ay"], samples["az"]]), self._latitude)
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
         if rate.size:  # the fastest warming this session, for refine.settled
@@ -532,6 +543,9 @@ class Session(RecoveryMixin):
     def _check_convergence(self, now: float) -> None:
         """COLLECTING -> CONVERGED -> VALIDATING; in MONITORING, re-validate as evidence grows."""
         monitoring = self.state is State.MONITORING
+        if self.unconfirmed is not None:  # learn, but record and push nothing under a guessed serial
+            self.reason = self.unconfirmed
+            return
         if self._bias_stage_due():
             self._push_bias(now)
             return
@@ -541,6 +555,7 @@ class Session(RecoveryMixin):
             if not ok:
                 why = "converged, but " + gate_why
         if not ok:
+            self._said_converged = False
             if not monitoring:  # a set the unit refused stays the first thing the status says
                 refused = self._refused_terms()
                 self.state, self.reason = State.COLLECTING, why if refused is None else f"{refused}; {why}"
@@ -553,7 +568,10 @@ class Session(RecoveryMixin):
             if not monitoring and self.last_validation.get("passed") is False:
                 self.reason = "validation failed before; collecting more samples"
             return  # else the reason a validated set was not pushed stays what the status says
-        if self.state is State.COLLECTING:
+        if self.state is State.COLLECTING and not self._said_converged:
+            # once per stretch of convergence: a store that refuses the set sends the session back to
+            # COLLECTING at every check, and this line came 4 times a second (an operator's audit)
+            self._said_converged = True
             log.info("unit %s: estimator %s", self.hello.serial, why)
         need = self.cfg.validation["min_holdout_blocks"]
         if not monitoring:
@@ -696,12 +714,13 @@ class Session(RecoveryMixin):
         try:
             record = self._record(proj)
         except Exception as err:  # never push a set the store does not know
+            first = self.store_error != str(err)  # one line per fault, not one per retry
             self.store_error = str(err)
             self._store_retry_at = now + self.STORE_RETRY_S
             self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
             self.reason = (f"store unavailable: {err}; validated set not pushed, "
-                           f"retrying in {self.STORE_RETRY_S:g} s")
-            log.error("unit %s: %s", self.hello.serial, self.reason)
+                           f"retrying every {self.STORE_RETRY_S:g} s")
+            log.log(logging.ERROR if first else logging.DEBUG, "unit %s: %s", self.hello.serial, self.reason)
             return
         self.store_error = None
         self.validated_rms = rms_new
@@ -874,7 +893,7 @@ class Session(RecoveryMixin):
             "state": self.state.value,
             "reason": self.reason,
             "unit": {"serial": self.hello.serial, "boot_count": self.hello.boot_count,
-                     "fw": self.hello.fw_version},
+                     "fw": self.hello.fw_version, "rate_hz": getattr(self.hello, "rate_hz", 0)},
             "applied": None if self.applied is None else {
                 "version": self.applied.version, "terms_id": self.applied.terms_id},
             "samples": self.samples, "still_samples": self.still_samples,

@@ -48,6 +48,7 @@ class RecoveryMixin:
     _read_deadline: float
     _store_retry_at: float
     _retry: Any
+    _disagreement_said: str | None = None
 
     def _send(self, msg: Any) -> bool:
         """Send to the unit; a link failure is counted and logged once per outage, never raised."""
@@ -96,6 +97,16 @@ class RecoveryMixin:
             self.agreement = reconcile(self.store, self.hello.serial, msg.version, crc).as_dict()
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
+        note = self.agreement.get("note")
+        if not self.agreement.get("agree") and note != self._disagreement_said:
+            # one line per new disagreement, not per read-back: status keeps showing it (unit_set)
+            self._disagreement_said = note
+            known = self.agreement.get("store_status") is not None
+            log.log(logging.WARNING if known else logging.INFO,
+                    "unit %s: %s; the store keeps its record, and learning uses the unit's set",
+                    self.hello.serial, note)
+        elif self.agreement.get("agree"):
+            self._disagreement_said = None
 
     def _store_push(self, version: int, push: dict[str, Any], now: float) -> None:
         """Record a push result; a store that cannot take it keeps it in memory for later."""

@@ -39,6 +39,22 @@ class Schedule:
     def cycle_s(self) -> float:
         return self.segment_s * len(self.poses_g)
 
+    def motion(self, t_on_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per sample at t_on [s]: the segment since switch-on (N,) (pose k = segment % K), the axis
+        (N, 3) and angle [rad] (N,) of that segment's turn so far, and the whole turn's angle (N,).
+
+        A vector fixed on the Earth (gravity, north, the Earth's rotation) seen from the body at the
+        start of the segment turns into ``_rotate(v, axis, phi)``."""
+        t = np.asarray(t_on_s, dtype=np.float64)
+        n_pose = len(self.poses_g)
+        seg = (t // self.segment_s).astype(np.int64)
+        k = seg % n_pose
+        tau = t - seg * self.segment_s
+        axis, angle = _rotation_between(self.poses_g[k], self.poses_g[(k + 1) % n_pose])
+        frac = np.clip((tau - self.dwell_s) / max(self.move_s, 1e-9), 0.0, 1.0)
+        phi = np.where(tau > self.dwell_s, frac * angle, 0.0)
+        return seg, axis, phi, angle
+
     def state(self, t_on_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Gravity [g] (N,3), true body rate [deg/s] (N,3) and a still flag (N,) at t_on [s]."""
         t = np.asarray(t_on_s, dtype=np.float64) % self.cycle_s
@@ -117,3 +133,27 @@ def load_schedule(path: str | Path) -> Schedule:
     if dwell <= 0:
         raise ConfigError(f"{name}: field 'dwell_s' must be > 0 s so the unit rests at each pose")
     return Schedule(poses / norms[:, None], float(dwell), float(move))
+
+
+class EarthFixed:
+    """A vector fixed on the Earth (north, the Earth's rotation) [any unit] as the body of a unit on
+    ``schedule`` sees it: it turns with every move exactly as gravity does. The vector at the start of
+    each segment is carried from switch-on, so a tumble whose moves do not close (a net turn about the
+    vertical per cycle) changes the unit's heading from cycle to cycle, as it would on a real fixture."""
+
+    def __init__(self, schedule: Schedule, v0_body: np.ndarray) -> None:
+        self.schedule = schedule
+        self._starts = [np.asarray(v0_body, dtype=np.float64)]  # the vector at each segment's start
+
+    def at(self, t_on_s: np.ndarray) -> np.ndarray:
+        """The vector in the body frame (N, 3) at t_on [s]."""
+        seg, axis, phi, _ = self.schedule.motion(t_on_s)
+        n_pose = len(self.schedule.poses_g)
+        g = self.schedule.poses_g
+        while len(self._starts) <= int(seg.max(initial=0)):
+            j = len(self._starts) - 1
+            k = j % n_pose
+            ax, ang = _rotation_between(g[k:k + 1], g[(k + 1) % n_pose:(k + 1) % n_pose + 1])
+            self._starts.append(_rotate(self._starts[j][None, :], ax, ang)[0])
+        return _rotate(np.asarray(self._starts)[seg], axis, phi)
+

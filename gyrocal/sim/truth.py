@@ -26,8 +26,9 @@ import numpy as np
 
 from gyrocal.errors import ConfigError
 from gyrocal.model.allan import FLICKER_FLOOR, gauss_markov_avar
+from gyrocal.model.earth import earth_rate_body_dps, north_in_body
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
-from gyrocal.sim.schedule import Schedule
+from gyrocal.sim.schedule import EarthFixed, Schedule
 
 DPH = 1.0 / 3600.0
 """One deg/h in deg/s."""
@@ -185,6 +186,11 @@ class TruthModel:
     """White accelerometer noise per sample [g]."""
     thermal: Thermal = field(default_factory=Thermal)
     effects: Effects = field(default_factory=Effects)
+    latitude_deg: float | None = None
+    """Where the unit sits on the Earth [deg, north positive]: its gyros then read the Earth's rotation
+    (15.041 deg/h) as true rate, as a real unit does. None: an Earth that does not turn."""
+    heading_deg: float = 0.0
+    """The heading of the unit's x axis at switch-on [deg east of north] (with ``latitude_deg``)."""
 
     def switch_on_bias(self, seed: int, boot: int) -> np.ndarray:
         """The bias jump of switch-on ``boot`` [deg/s], shape (3,): deterministic per (seed, boot)."""
@@ -304,6 +310,11 @@ class SessionStream:
         self._rw_dps = np.zeros(3)
         self.index = 0
         self._noise = _NoiseState(model, rate_hz, seed, boot)
+        self._earth: EarthFixed | None = None
+        if model.latitude_deg is not None:
+            up0 = schedule.poses_g[0]
+            self._earth = EarthFixed(schedule, earth_rate_body_dps(
+                up0, north_in_body(up0, model.heading_deg), model.latitude_deg))
 
     def chunk(self, n: int) -> dict[str, np.ndarray]:
         m = self.model
@@ -311,6 +322,8 @@ class SessionStream:
         self.index += n
         t_on = i / self.rate_hz
         g, omega, still = self.schedule.state(t_on)
+        if self._earth is not None:  # true rate, not drift: in ref_w, never in drift_w
+            omega = omega + self._earth.at(t_on)
         temp = m.thermal.temp_c(t_on)
         dtemp = m.thermal.rate_c_per_s(t_on)
         t = self.t0_s + t_on
