@@ -192,8 +192,10 @@ def test_status_text_aligns_long_keys_and_wraps_instead_of_cutting() -> None:
 
 
 def test_watch_prints_one_json_line_per_change(short_dir: Path, capsys) -> None:
-    answers = iter([{"state": "A", "n": 1}, {"state": "A", "n": 1}, {"state": "B", "n": 2},
-                    {"state": "B", "n": 2}, {"state": "C", "n": 3}])
+    # uptime and sample counts move at every poll: they are not a change (an operator's audit)
+    answers = iter([{"state": "A", "n": 1, "uptime_s": 1.0}, {"state": "A", "n": 1, "uptime_s": 2.0,
+                                                              "samples": 900},
+                    {"state": "B", "n": 2}, {"state": "B", "n": 2}, {"state": "C", "n": 3}])
     asked = []
 
     def handler(req: dict) -> dict:

@@ -208,6 +208,22 @@ def test_the_sighup_reload_refuses_a_bad_range_and_keeps_the_old_config(tmp_path
     assert eng.cfg.validation["block_s"] == 0.5 and eng.cfg.push["ack_timeout_s"] == 1.0
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "validation.block_s" in errors[0] and str(path) in errors[0]
+    assert eng.last_reload["ok"] is False and "validation.block_s" in eng.last_reload["error"]  # status
+
+
+def test_a_reload_says_what_waits_for_a_restart_or_a_switch_on(tmp_path: Path, caplog) -> None:
+    """state_dir and friends were ignored without a word; still and site wait for the next session."""
+    path = tmp_path / "c.yaml"
+    path.write_text(f"link: {{url: /dev/x}}\nstate_dir: {tmp_path / 'a'}\n")
+    eng = _reload_only_engine(path)
+    path.write_text(f"link: {{url: /dev/x}}\nstate_dir: {tmp_path / 'b'}\nstill: {{k_std: 5}}\n"
+                    "site: {latitude_deg: 48.1}\n")
+    with caplog.at_level("INFO"):
+        eng._reload()
+    said = " | ".join(r.getMessage() for r in caplog.records)
+    assert "state_dir changed" in said and "next restart" in said
+    assert "still settings changed" in said and "site.latitude_deg changed to 48.1" in said
+    assert eng.cfg.site["latitude_deg"] == 48.1 and eng.last_reload["ok"]
 
 
 def test_the_sighup_reload_takes_new_terms_for_the_next_session(tmp_path: Path, caplog) -> None:

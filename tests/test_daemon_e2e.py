@@ -161,12 +161,13 @@ def test_daemon_and_unit_over_a_pty_push_and_cut_drift_tenfold(tmp_path: Path) -
         stop(sim)
 
 
-def _can_push_checked(tmp_path: Path, *sim_args: str) -> dict[str, Any]:
-    """Daemon first, then the sim (``sim_args`` added) on a udp_multicast bus; the first acked push is
-    read back and cuts the drift 10x. Returns the daemon's status then (both processes stopped)."""
+def _can_push_checked(tmp_path: Path, *sim_args: str, **sections: Any) -> dict[str, Any]:
+    """Daemon first (config ``sections`` added), then the sim (``sim_args`` added) on a udp_multicast
+    bus; the first acked push is read back and cuts the drift 10x. Returns the daemon's status then
+    (both processes stopped)."""
     port = free_udp_port()
     can = {"interface": "udp_multicast", "channel": "239.74.163.2", "port": port}
-    daemon, sock = start_daemon(tmp_path, {"kind": "can", "can": can})
+    daemon, sock = start_daemon(tmp_path, {"kind": "can", "can": can}, **sections)
     sim = None
     try:
         wait_for(lambda: status(sock), 20, "the daemon's control socket", tmp_path)
@@ -192,6 +193,14 @@ def test_over_can_a_link_that_loses_a_burst_every_2_s_still_gets_the_unit_calibr
     st = _can_push_checked(tmp_path, "--lose-burst", "0.1", "--lose-every", "2")
     assert st["link"]["errors"]["lost_samples"] >= 40, st["link"]["errors"]  # 50 per burst at 500 Hz
     assert unit_status(tmp_path)["lost_on_link"] > 0
+
+
+def test_over_can_a_unit_that_turns_with_the_earth_is_calibrated_with_north_found(tmp_path: Path) -> None:
+    """`gyrocal sim --latitude 45 --heading 200`: its gyros read the Earth's rotation at rest. With
+    site.latitude_deg the daemon finds north from the tumble (CAN hands it a sample or two at a time)
+    and the pushed set cuts the drift 10x (tests/test_earth.py: without it, nothing is pushed)."""
+    st = _can_push_checked(tmp_path, "--latitude", "45", "--heading", "200", site={"latitude_deg": 45.0})
+    assert st["earth"]["north_found"] and st["earth"]["references"] == 1, st["earth"]
 
 
 def test_garbage_and_a_unit_that_never_says_hello_leave_the_daemon_waiting_and_saying_why(

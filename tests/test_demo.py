@@ -19,3 +19,5 @@ def test_demo_json_is_contract_4_and_the_push_cuts_drift_tenfold() -> None:
     assert res["pushed"] and res["acked"] and res["version"] == 1 and res["link"] == "serial"
     for a in "xyz":
         assert res["drift_rms_after"][a] * 10 <= res["drift_rms_before"][a]
+        # the README promises the prediction too (it was printed for the other grades only)
+        assert 0 < res["predicted_drift_after"][a] < res["drift_rms_before"][a]

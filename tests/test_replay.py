@@ -54,8 +54,8 @@ def test_replay_is_deterministic_and_records_the_push(sim_log: Path, tmp_path: P
     for key in ("decisions", "validations", "pushes", "sessions", "samples"):
         assert a[key] == b[key], key
     assert a["samples"] == 28000 and len(a["sessions"]) == 2 and a["sessions_started"] == 2
-    assert [s["unit"] for s in a["sessions"]] == [{"serial": 31, "boot_count": 0, "fw": "2.1.0"},
-                                                   {"serial": 31, "boot_count": 1, "fw": "2.1.0"}]
+    unit = {"serial": 31, "fw": "2.1.0", "rate_hz": 200}  # rate_hz: the HELLO's
+    assert [s["unit"] for s in a["sessions"]] == [{**unit, "boot_count": 0}, {**unit, "boot_count": 1}]
     push = a["pushes"][0]
     assert push["status"] == "recorded" and push["engine_result"] == "acked" and push["readback_ok"]
     assert len(push["coefficients_dps"]) == 3 and len(push["coefficients_dps"][0]) == len(push["terms"])
@@ -123,7 +123,8 @@ def test_a_serial_capture_replays_through_the_same_decoder(tmp_path: Path) -> No
     res = replay(open_recording(str(cap)), _cfg(tmp_path))
     s = res["sessions"][0]
     assert res["format"] == "serial" and res["samples"] == 2000 and res["dropped"]["garbage_bytes"] == 8
-    assert s["unit"] == {"serial": 55, "boot_count": 9, "fw": "3.0.1"} and s["applied"]["version"] == 7
+    assert s["unit"] == {"serial": 55, "boot_count": 9, "fw": "3.0.1", "rate_hz": 200}
+    assert s["applied"]["version"] == 7
 
 
 def test_a_converted_can_log_keeps_the_applied_set_for_replay(tmp_path: Path) -> None:

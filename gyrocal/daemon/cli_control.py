@@ -83,6 +83,13 @@ def _positive(text: str) -> float:
     return v
 
 
+WATCH_IGNORES = frozenset({"uptime_s", "liveness", "latency_s", "ring", "samples", "still_samples",
+                           "trained_samples", "link", "monitor_rms_dps", "coefficients_dps",
+                           "uncertainty_dps", "rate_hz", "earth", "still", "predicted_drift_dph"})
+"""Status keys that move with every sample: ``--watch`` prints a line when anything else changes
+(state, reason, pushes, faults, the unit's set), with these as they are then."""
+
+
 def watch_status(socket_path: Path, interval_s: float, count: int = 0) -> int:
     """JSON lines, one per change of the daemon's answer; a lost daemon is one error line, then
     watching resumes when it comes back. Returns 0 (after ``count`` lines, or on Ctrl-C)."""
@@ -97,8 +104,11 @@ def watch_status(socket_path: Path, interval_s: float, count: int = 0) -> int:
             except GyrocalError as err:
                 reply = {"ok": False, "error": str(err)}
             line = json.dumps(reply, sort_keys=True, separators=(",", ":"))
-            if line != last:
-                last = line
+            # a change is a change of anything but the clocks (uptime, sample age, latency), which
+            # move at every poll and made every poll a line (an operator's audit)
+            key = json.dumps({k: v for k, v in reply.items() if k not in WATCH_IGNORES}, sort_keys=True)
+            if key != last:
+                last = key
                 sys.stdout.write(line + "\n")
                 sys.stdout.flush()
                 printed += 1

@@ -19,7 +19,7 @@ import numpy as np
 from gyrocal.daemon.config import load_config
 from gyrocal.daemon.push import check_set
 from gyrocal.daemon.session import State
-from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord
+from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
 
 log = logging.getLogger("gyrocal.engine")
 
@@ -125,9 +125,18 @@ class CommandsMixin:
                 new = load_config(self.cfg.source)
             except Exception as err:  # a broken edit must not kill a running daemon
                 log.error("SIGHUP: config not reloaded: %s", err)
+                self.last_reload = {"utc": utc_now(), "ok": False, "error": str(err)}
             else:
+                self.last_reload = {"utc": utc_now(), "ok": True}
                 if new.link != self.cfg.link:
                     log.warning("SIGHUP: link settings changed; they take effect at the next restart")
+                for top in ("state_dir", "control_socket", "watchdog"):  # read once, at start
+                    if getattr(new, top) != getattr(self.cfg, top):
+                        log.warning("SIGHUP: %s changed to %s; it takes effect at the next restart", top,
+                                    getattr(new, top))
+                if new.still != self.cfg.still:  # the still detector is made at a session's start
+                    log.info("SIGHUP: still settings changed; they take effect at the next switch-on "
+                             "(or `gyrocal recalibrate`)")
                 if new.site != self.cfg.site:  # a session reads it when it starts
                     log.info("SIGHUP: site.latitude_deg changed to %s; it takes effect at the next "
                              "switch-on (or `gyrocal recalibrate`)", new.site["latitude_deg"])

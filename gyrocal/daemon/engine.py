@@ -113,6 +113,7 @@ class Engine(CommandsMixin):
         self.last_hello: Hello | None = None
         self.detector = self._new_detector(1000.0)
         self.rate_hz: float | None = None  # measured from the samples' time stamps
+        self.last_reload: dict[str, Any] | None = None  # the last SIGHUP's result, for status
         self._rate_dts: deque[float] = deque(maxlen=self.RATE_WINDOW)
         self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
         self.status: dict[str, Any] = {"state": "STARTING"}
@@ -571,7 +572,7 @@ class Engine(CommandsMixin):
                                     "silent": silent, "silent_after_s": SILENT_AFTER_S},
                        "sequence": {"outliers": self.seq.outliers, "restarts": self.seq.restarts,
                                     "gaps": self.seq.gaps, "held": self.seq.pending},
-                       "loop_errors": self.loop_errors,
+                       "loop_errors": self.loop_errors, "reload": self.last_reload,
                        "sessions": self.sessions_started, "config": self.cfg.source,
                        "rate_hz": self.rate_hz, "latency_s": self.latency_percentiles_s()})
         self.status = status

@@ -91,6 +91,7 @@ class Learner:
     """Seconds of still samples in the convergence windows (error ratio, change) and the minimum."""
 
     def __init__(self, cfg: Any, prior: Any | None = None, rate_hz: float = 1000.0) -> None:
+        self._args = (cfg, prior, rate_hz)
         self.names = list(cfg.terms)
         est = cfg.estimator
         conv = dict(est["convergence"])
@@ -132,6 +133,11 @@ class Learner:
         # only update_many changes: they are computed once per update and kept until the next one
         self._version = 0
         self._cache: dict[str, tuple[int, Any]] = {}
+
+    def fresh(self) -> Learner:
+        """A new learner from the same config and stored set: learning starts again (a session that
+        has found north takes the Earth's rotation out of every sample from then on, earth_track.py)."""
+        return Learner(*self._args)
 
     def _cached(self, key: str, compute: Any) -> Any:
         hit = self._cache.get(key)

@@ -71,12 +71,12 @@ import numpy as np
 from gyrocal.daemon import refine
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.capabilities import PROTOCOL, Projection, UnitCapabilities, project
+from gyrocal.daemon.earth_track import EarthTrack
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.poses import PoseLog
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
 from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
-from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello, NakReason
@@ -210,7 +210,8 @@ class Session(RecoveryMixin):
         self._bias_pushed = False
         self._push_prediction: dict[str, Any] = {}
         self._trate = TempRate()  # dtemp by the unit's own rule (protocol.md, section 6)
-        self._latitude: float | None = cfg.site["latitude_deg"]  # [deg]: the Earth rate's vertical part
+        lat = cfg.site["latitude_deg"]  # [deg]: the Earth's rotation is true rate, not drift
+        self.earth = None if lat is None else EarthTrack(lat, len(self.names))
         self._next_check = now
         self._next_validation_at = 0
         self._validated_at = 0  # learner samples at the last validation
@@ -318,9 +319,11 @@ class Session(RecoveryMixin):
         elif exact.all():
             self._inexact_said = False
         out = np.column_stack([samples["wx"], samples["wy"], samples["wz"]])
-        if self._latitude is not None:  # true rate at rest, not drift (gyrocal/model/earth.py)
-            out = out - vertical_earth_rate_dps(
-                np.column_stack([samples["ax"], samples["ay"], samples["az"]]), self._latitude)
+        c_ref = None
+        if self.earth is not None:  # true rate at rest, not drift (earth_track.py)
+            acc_g = np.column_stack([samples["ax"], samples["ay"], samples["az"]])
+            c_ref = self.earth.advance(samples["seq"], samples["t"], out, acc_g, still)
+            out = out - self.earth.earth_dps(c_ref, acc_g)
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
         if rate.size:  # the fastest warming this session, for refine.settled
@@ -329,6 +332,8 @@ class Session(RecoveryMixin):
         # direction is exact); the unit applies its set on the measured accel, hence raw below
         phi = block_terms(self.spec, cols)
         raw = out + self._compensation(samples["seq"], cols, phi)
+        if c_ref is not None and not self.earth.known and still.any():
+            self.earth.add(phi[still], raw[still], c_ref[still])  # to find north (earth_track.py)
         blocks, train = self.acc.feed(raw, out, phi, still)
         self._t_last = float(samples["t"][-1])
         for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
@@ -530,11 +535,35 @@ class Session(RecoveryMixin):
         if now < self._next_check:
             return
         self._next_check = now + self.CHECK_EVERY_S
+        if self.earth is not None and self.earth.fit(self.learner.full_rank):
+            self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED):
             self._check_convergence(now)
         elif self.state is State.MONITORING:
             self._check_alarm()
             self._check_convergence(now)
+
+    def _north_found(self) -> None:
+        """North is fixed (earth_track.py): from here on the Earth's whole rotation is taken out of
+        every sample, and learning starts again, because what was learnt so far held the part along
+        north (a set already pushed stays; the next validation refines it)."""
+        e = self.earth
+        log.info("unit %s: north found from the tumble (heading 1-sigma %.1f deg, Earth rate fit %.2f x "
+                 "its latitude's): the Earth's rotation is taken out of the samples from now on, and "
+                 "learning starts again", self.hello.serial, e.heading_sigma_deg, e.fit_magnitude)
+        if not 0.7 <= e.fit_magnitude <= 1.3:
+            log.warning("unit %s: the horizontal Earth rate fitted is %.2f x that of site.latitude_deg "
+                        "%.4g: check the latitude", self.hello.serial, e.fit_magnitude, e.latitude_deg)
+        self.learner = self.learner.fresh()
+        block = int(round(self.cfg.validation["block_s"] * self.rate_hz))
+        self.acc = BlockAccumulator(block, self.cfg.validation["holdout_every"], len(self.names))
+        self.holdout = BlockWindow(512)
+        self.monitor.clear()
+        self._next_validation_at = 0
+        self._validated_at = 0
+        self._said_converged = False
+        if self.state in (State.CONVERGED, State.VALIDATING):
+            self.state = State.COLLECTING
 
     def _refused_terms(self) -> str | None:
         """Why the unit will not take this session's term set (a NAK UNKNOWN_TERMS), or None."""
@@ -917,6 +946,7 @@ class Session(RecoveryMixin):
                        "retry": None if self._retry is None else {"version": self._retry["version"],
                                                                    "round": self._retry["round"]}},
             "poses_seen": len(self.poses),
+            "earth": None if self.earth is None else self.earth.status(),
             "unit_caps": self.caps.as_dict(),
             "reboot_needed": self.reboot_needed,
             "host_remainder": self.host_remainder,

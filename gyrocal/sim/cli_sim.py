@@ -16,6 +16,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import signal
@@ -57,6 +58,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help=f"sensor noise beyond white, repeatable; NAME one of {', '.join(NOISE_FIELDS)}")
     p.add_argument("--effect", action="append", metavar="NAME=VALUE",
                    help=f"a systematic drift effect, repeatable; NAME one of {', '.join(EFFECT_FIELDS)}")
+    p.add_argument("--latitude", type=float, default=None, metavar="DEG",
+                   help="the unit turns with the Earth at this latitude (north positive): its gyros read "
+                        "15.041 deg/h as true rate, as a real unit's do (default: an Earth that does not "
+                        "turn)")
+    p.add_argument("--heading", type=float, default=0.0, metavar="DEG",
+                   help="with --latitude: the heading of the unit's x axis at switch-on, east of north")
     p.add_argument("--record", metavar="LOG.csv", help="record what was sent (+ LOG.truth.csv)")
     p.add_argument("--flash", metavar="PATH", help="keep boot count and applied set in this JSON file")
     p.add_argument("--pty-link", metavar="PATH", help="symlink PATH to the pty slave (a stable name)")
@@ -219,6 +226,10 @@ def main(args: argparse.Namespace) -> int:
                     lose_every_s=args.lose_every)
     truth = set_noise(grade_truth(args.grade, args.rate), args.noise)  # a grade, then --noise on top
     truth = set_effects(truth, args.effect)
+    if args.latitude is not None:
+        if not -90.0 <= args.latitude <= 90.0:
+            raise ConfigError(f"--latitude {args.latitude:g}: write a latitude in degrees, -90 to 90")
+        truth = dataclasses.replace(truth, latitude_deg=args.latitude, heading_deg=args.heading)
     unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
