@@ -23,3 +23,11 @@ class LinkError(GyrocalError):
 
 class ProtocolError(GyrocalError):
     """A frame cannot be encoded (a value out of its field's range, too many coefficients)."""
+
+
+def yaml_error_text(name: str, err: Exception) -> str:
+    """``NAME:LINE: not valid YAML (problem)``: one line, where PyYAML's own text is several with a
+    caret drawing (a push file and the daemon's config say it alike)."""
+    mark = getattr(err, "problem_mark", None)
+    where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+    return f"{name}{where}: not valid YAML ({getattr(err, 'problem', None) or err})"

@@ -32,7 +32,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="overwrite files that exist in DIR")
     p.add_argument("--exec", dest="exec_path", nargs="?", const="", default=None, metavar="PATH",
                    help=f"write PATH (default: this install's gyrocal) in the unit's ExecStart instead of "
-                        f"{UNIT_EXEC}")
+                        f"{UNIT_EXEC}; give DIR first (`install-files DIR --exec`), since --exec DIR "
+                        "reads DIR as PATH")
 
 
 def shipped_text(name: str) -> str:

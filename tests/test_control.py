@@ -246,6 +246,7 @@ def test_push_accepts_fit_output_and_store_records(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("content", "suffix", "expected"), [
     ("{not json", ".json", "not valid JSON"),
+    ("terms: [1\n", ".yaml", ":2:1: not valid YAML (expected ',' or ']'"),  # one line, not PyYAML's drawing
     ("- 1\n- 2\n", ".yaml", "top level is list"),
     ("coefficients: {x: [1], y: [1], z: [1]}\n", ".yaml", "field 'terms'"),
     ("terms: ['1', 'gx^0']\ncoefficients: {x: [1, 2], y: [1, 2], z: [1, 2]}\n", ".yaml", "field 'terms'"),
@@ -262,7 +263,7 @@ def test_push_file_errors_name_the_file_the_field_and_the_fix(tmp_path: Path, co
     f.write_text(content)
     with pytest.raises(ConfigError) as err:
         load_coefficient_file(f)
-    assert str(f) in str(err.value) and expected in str(err.value)
+    assert str(f) in str(err.value) and expected in str(err.value) and "\n" not in str(err.value)
 
 
 def test_cli_push_missing_file_exits_2_naming_it(server, tmp_path: Path, capsys) -> None:

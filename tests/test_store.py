@@ -319,3 +319,17 @@ def test_prune_on_a_store_that_cannot_be_written_keeps_everything_and_says_so_on
     assert len(store.history(1234)) == 8 and len(list(udir.iterdir())) == 8
     said = [r.getMessage() for r in caplog.records if "cannot remove" in r.getMessage()]
     assert len(said) == 1, said
+
+
+def test_the_warm_start_is_the_set_the_unit_held_last_not_the_newest(tmp_path: Path) -> None:
+    """A rollback to v2 after v3: the unit holds v2. The warm start was the newest acked (v3), whose
+    bias stage then pushed v3's set back (an operator's audit)."""
+    store = CalibrationStore(tmp_path)
+    for i in range(3):
+        store.add(make_record(serial=5, seed=i))
+    store.update_push(5, 1, {"status": "acked", "utc": "2026-11-20T10:00:00.000000Z"})
+    store.update_push(5, 3, {"status": "acked", "utc": "2026-11-21T10:00:00.000000Z"})
+    store.update_push(5, 2, {"status": "acked", "utc": "2026-11-22T10:00:00.000000Z"})  # the rollback
+    assert store.held_last(5).version == 2 and store.latest(5).version == 3
+    assert CalibrationStore(tmp_path).held_last(5).version == 2
+    assert CalibrationStore(tmp_path / "none").held_last(5) is None

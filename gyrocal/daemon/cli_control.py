@@ -40,7 +40,7 @@ from typing import Any
 import yaml
 
 from gyrocal.daemon.control import default_socket_path, request
-from gyrocal.errors import ConfigError, GyrocalError
+from gyrocal.errors import ConfigError, GyrocalError, yaml_error_text
 
 AXES = ("x", "y", "z")
 
@@ -309,9 +309,11 @@ def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
             doc = yaml.safe_load(text)
         else:
             doc = json.loads(text)
-    except (ValueError, yaml.YAMLError) as err:
-        kind = "YAML" if Path(path).suffix.lower() in (".yaml", ".yml") else "JSON"
-        raise ConfigError(f"{path}: not valid {kind}: {err}; fix: the file must hold an object with "
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{yaml_error_text(str(path), err)}; fix: the file must hold an object with "
+                          "'terms' and 'coefficients'") from err
+    except ValueError as err:
+        raise ConfigError(f"{path}: not valid JSON: {err}; fix: the file must hold an object with "
                           "'terms' and 'coefficients' (name YAML files .yaml)") from err
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: top level is {type(doc).__name__}; fix: it must be an object with "

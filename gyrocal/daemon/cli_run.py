@@ -42,8 +42,10 @@ def main(args: argparse.Namespace) -> int:
         if cfg.virtual_unit["enabled"]:
             unit = start_virtual_unit(cfg.virtual_unit, cfg.link["kind"], Path(tmp))
             link_cfg.update(unit.link_cfg)
-            log.info("virtual unit started (pid %d) on %s", unit.proc.pid,
-                     link_cfg.get("url") or link_cfg.get("can"))
+            # a WARNING: on a vehicle this means the real unit is not being calibrated at all
+            log.warning("virtual unit started (pid %d) on %s: calibrating a simulated unit, not hardware "
+                        "(virtual_unit.enabled in %s)", unit.proc.pid,
+                        link_cfg.get("url") or link_cfg.get("can"), cfg.source)
         engine = Engine(cfg, link_cfg)
         engine.install_signals()
         try:

@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-from gyrocal.errors import ConfigError
+from gyrocal.errors import ConfigError, yaml_error_text
 from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
 from gyrocal.model.terms import SEED000_TERMS, read_terms_file
@@ -225,9 +225,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     except OSError as err:
         raise ConfigError(f"{name}: cannot read the config ({err.strerror})") from None
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{name}{where}: not valid YAML ({getattr(err, 'problem', err)})") from None
+        raise ConfigError(yaml_error_text(name, err)) from None
     if doc is None:
         doc = {}
     if not isinstance(doc, dict):
@@ -306,7 +304,9 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
                   "channel: can0}, or configure python-can (CAN_INTERFACE/CAN_CHANNEL, /etc/can.conf, "
                   "~/.canrc)")
     if link["url"] == "auto" and link["kind"] == "serial" and not s["virtual_unit"]["enabled"]:
-        _fail(name, "link.url", "auto", "`auto` needs virtual_unit.enabled: true; name the device instead")
+        _fail(name, "link.url", "auto", "`auto` (the default, when link.url is left out) is the virtual "
+              "unit's pty and needs virtual_unit.enabled: true; name the device, e.g. link: {url: "
+              "/dev/gyrocal-imu}")
     if est["method"] not in ("rls", "nlms", "lms", "kf"):
         _fail(name, "estimator.method", est["method"], "write rls, nlms, lms or kf")
     if est["method"] == "kf":  # the bias intensities come from the terms file analyze wrote

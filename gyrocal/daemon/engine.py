@@ -424,7 +424,7 @@ class Engine(CommandsMixin):
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
         self._prune_store(hello.serial)  # bounded for years of switch-ons
-        prior = self.store.latest(hello.serial, acked_only=True)
+        prior = self.store.held_last(hello.serial)  # what the unit held last, a rollback included
         caps = of_link(self.link)  # what this unit holds, as of its HELLO
         moved = frame_changed(caps, prior)
         if moved:  # a remounted autopilot: its stored set is in another body frame (capabilities.py)
@@ -560,7 +560,7 @@ class Engine(CommandsMixin):
         elif silent:
             status["session_state"] = status["state"]
             status["state"] = "UNIT_SILENT"
-            status["reason"] = (f"unit silent: no sample for {age:.1f} s" if age is not None
+            status["reason"] = (f"unit silent: no sample for {age:.0f} s" if age is not None
                                 else "unit silent: connected, but no sample yet")
         if silent != self._silent:
             if silent:

@@ -707,11 +707,12 @@ class Session(RecoveryMixin):
                 log.info("unit %s: bias stage: %s", self.hello.serial, why)
                 self.state, self.reason = State.COLLECTING, why
                 return
-            if self.validated_rms is not None:  # a re-check while monitoring a pushed set: routine
-                log.info("unit %s: %s", self.hello.serial, why)
+            # routine either way (a re-check while monitoring, or a first set that needs more samples):
+            # INFO, so `journalctl -p warning` shows faults only (an operator's audit); status says why
+            log.info("unit %s: %s", self.hello.serial, why)
+            if self.validated_rms is not None:
                 self.state = State.MONITORING
             else:
-                log.warning("unit %s: %s", self.hello.serial, why)
                 self.state, self.reason = State.COLLECTING, why
             return
         self.last_validation["passed"] = True

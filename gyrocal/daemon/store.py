@@ -289,6 +289,18 @@ class CalibrationStore:
                     return recs[v]
             return None
 
+    def held_last(self, serial: int) -> CalibrationRecord | None:
+        """The set the unit verifiably held last: the applied record pushed latest (push ``utc``), the
+        highest version among equals. The warm start: after an operator's rollback to v2 the unit
+        holds v2, and a restart that warm-started from the newest version (v7) pushed v7's set back
+        at its bias stage, undoing the rollback (an operator's audit)."""
+        with self._lock:
+            recs = self._load(serial)
+            applied = [v for v in recs if recs[v].push.get("status") in APPLIED_STATUSES]
+            if not applied:
+                return None
+            return recs[max(applied, key=lambda v: (str(recs[v].push.get("utc") or ""), v))]
+
     def next_version(self, serial: int) -> int:
         """One more than the highest version on disk, counting unreadable files so none is reused."""
         with self._lock:
@@ -457,8 +469,9 @@ class CalibrationStore:
             applied = [v for v in versions if recs[v].push.get("status") in APPLIED_STATUSES]
             protect = set(versions[-keep:]) | set(applied[-2:])
             protect |= {v for v in versions if recs[v].push.get("status") == "pending"}
-            if applied:
-                protect.add(max(applied, key=lambda v: (str(recs[v].push.get("utc") or ""), v)))
+            held = self.held_last(serial)  # the one it acked last (an RLock: re-entered)
+            if held is not None:
+                protect.add(held.version)
             gone: list[int] = []
             udir = self._unit_dir(serial)
             for v in versions:
