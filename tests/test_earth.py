@@ -106,3 +106,25 @@ def test_a_unit_that_turns_with_the_earth_is_calibrated_once_the_daemon_knows_it
     u = told.unit.status()
     for a in "xyz":
         assert u["drift_rms_compensated_dps"][a] * 10 <= u["drift_rms_raw_dps"][a], (a, u)
+
+
+def test_a_link_that_loses_bursts_loses_the_frame_and_north_is_found_again(tmp_path: Path) -> None:
+    """0.2 s lost in every 5 s: a gap during a move loses the frame the gyro integration carries. Each
+    new frame's north comes from the joint fit with the drift already known (a rest or two), its
+    samples teach nothing meanwhile, and the unit is still pushed and cut 10x."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_late_start import _lose_bursts
+
+    truth = dataclasses.replace(grade_truth("demo", 400.0), latitude_deg=45.0, heading_deg=30.0)
+    run = GradeRun.make(tmp_path, "demo", 400.0, 1, truth=truth, **{"site.latitude_deg": 45.0})
+    run.switch_on()
+    _lose_bursts(run, 0.2, 5.0, 150.0, until=lambda r: any(p["push"].get("status") == "acked"
+                                                             for p in r.pushes))
+    earth = run.session.status()["earth"]
+    assert earth["references"] >= 2 and earth["last_loss"], earth  # the case is exercised
+    assert any(p["push"].get("status") == "acked" for p in run.pushes)
+    u = run.unit.status()
+    for a in "xyz":
+        assert u["drift_rms_compensated_dps"][a] * 10 <= u["drift_rms_raw_dps"][a], (a, u)

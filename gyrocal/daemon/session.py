@@ -323,6 +323,8 @@ class Session(RecoveryMixin):
         if self.earth is not None:  # true rate at rest, not drift (earth_track.py)
             acc_g = np.column_stack([samples["ax"], samples["ay"], samples["az"]])
             c_ref = self.earth.advance(samples["seq"], samples["t"], out, acc_g, still)
+            clean = self.earth.known & np.isfinite(c_ref[:, 0, 0])
+            north_part = self.earth.horizontal_dps(c_ref)  # the fit's sums take the rate with it in
             out = out - self.earth.earth_dps(c_ref, acc_g)
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
@@ -332,8 +334,12 @@ class Session(RecoveryMixin):
         # direction is exact); the unit applies its set on the measured accel, hence raw below
         phi = block_terms(self.spec, cols)
         raw = out + self._compensation(samples["seq"], cols, phi)
-        if c_ref is not None and not self.earth.known and still.any():
-            self.earth.add(phi[still], raw[still], c_ref[still])  # to find north (earth_track.py)
+        if c_ref is not None and still.any():
+            # every still sample finds north (earth_track.py); once it was found, a sample whose
+            # reference has no north yet (lost, found again from a rest or two) teaches nothing else
+            self.earth.add(phi[still], raw[still] + north_part[still], c_ref[still])
+        if c_ref is not None and self.earth.found_before:
+            still = still & clean
         blocks, train = self.acc.feed(raw, out, phi, still)
         self._t_last = float(samples["t"][-1])
         for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
@@ -535,8 +541,16 @@ class Session(RecoveryMixin):
         if now < self._next_check:
             return
         self._next_check = now + self.CHECK_EVERY_S
-        if self.earth is not None and self.earth.fit(self.learner.full_rank):
-            self._north_found()
+        if self.earth is not None:
+            again = self.earth.found_before
+            if self.earth.fit(self.learner.full_rank):
+                if again:  # the drift was learnt clean: nothing to learn again
+                    log.log(logging.INFO if self.earth.references == 2 else logging.DEBUG,
+                            "unit %s: north found again after the reference was lost (%d references so "
+                            "far; heading 1-sigma %.1f deg)", self.hello.serial, self.earth.references,
+                            self.earth.heading_sigma_deg)
+                else:
+                    self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED):
             self._check_convergence(now)
         elif self.state is State.MONITORING:
