@@ -121,6 +121,17 @@ def test_a_busy_storm_retries_the_same_version_with_back_off(tmp_path: Path) -> 
     assert h.unit.writes["naked"] == 6
 
 
+def test_a_push_acked_after_a_nak_records_no_nak_reason(tmp_path: Path) -> None:
+    """One NAK BUSY, then the ack in the same push: the record said status acked, nak_reason 4 (found by
+    a unit built from docs/protocol.md alone). The NAK stays in its reasons."""
+    h = Harness.make(tmp_path, faults=Faults(nak_next=1))
+    h.switch_on()
+    h.run(120, until=_acked)
+    push = h.store.get(4242, 1).push
+    assert push["status"] == "acked" and push["attempts"] == 2 and push["nak_reason"] is None, push
+    assert any("NAK" in r for r in push["reasons"])
+
+
 # ---- reconciliation -----------------------------------------------------------------------------
 def test_a_lost_ack_is_reconciled_from_the_read_back(tmp_path: Path) -> None:
     h = Harness.make(tmp_path, faults=Faults(lose_ack=3))
