@@ -222,6 +222,10 @@ def test_cli_rollback_rejects_a_bad_version_as_a_user_error(server) -> None:
 def test_cli_without_a_daemon_exits_2_with_the_hint(short_dir: Path, capsys) -> None:
     assert cli_main(["status", "--socket", str(short_dir / "none.sock")]) == 2
     assert "no gyrocal daemon listening on" in capsys.readouterr().err
+    # --json answers in JSON even then (it printed the text line: an operator's audit)
+    assert cli_main(["status", "--json", "--socket", str(short_dir / "none.sock")]) == 2
+    reply = json.loads(capsys.readouterr().out)
+    assert reply["ok"] is False and "no gyrocal daemon listening on" in reply["error"]
 
 
 def test_cli_push_yaml_sends_three_rows_in_term_order(server, tmp_path: Path) -> None:

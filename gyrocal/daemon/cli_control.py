@@ -122,10 +122,17 @@ def watch_status(socket_path: Path, interval_s: float, count: int = 0) -> int:
 def main_status(args: argparse.Namespace) -> int:
     if args.watch:
         return watch_status(args.socket, args.interval, args.count)
-    reply = request(args.socket, {"cmd": "status"})
-    if args.json:
+    if args.json:  # a script reads JSON whatever happened, with the same exit status as the text
+        try:
+            reply = request(args.socket, {"cmd": "status"})
+        except ConfigError:
+            raise  # an unsafe socket directory: the one line on stderr, as without --json
+        except GyrocalError as err:
+            print(json.dumps({"ok": False, "error": str(err)}, indent=2, sort_keys=True))
+            return 2
         print(json.dumps(reply, indent=2, sort_keys=True))
         return 0 if reply.get("ok", False) else 1
+    reply = request(args.socket, {"cmd": "status"})
     if not reply.get("ok", False):
         return _answer(reply)
     print(format_status(reply))
