@@ -333,3 +333,33 @@ def test_the_warm_start_is_the_set_the_unit_held_last_not_the_newest(tmp_path: P
     assert store.held_last(5).version == 2 and store.latest(5).version == 3
     assert CalibrationStore(tmp_path).held_last(5).version == 2
     assert CalibrationStore(tmp_path / "none").held_last(5) is None
+
+
+def test_a_full_disk_names_the_file_it_could_not_write(tmp_path: Path) -> None:
+    """ENOSPC from write() carries no path ("store unavailable: [Errno 28] No space left on device"
+    said nothing of where: an operator's audit); the temporary file is removed."""
+    import builtins
+    import errno
+    from unittest import mock
+
+    from gyrocal.daemon.store import atomic_write_json
+
+    real_open = builtins.open
+
+    class Full:
+        def __init__(self, *a, **k) -> None:
+            self.f = real_open(*a, **k)
+
+        def __enter__(self) -> Full:
+            return self
+
+        def __exit__(self, *a) -> None:
+            self.f.close()
+
+        def write(self, b: bytes) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    with mock.patch("builtins.open", Full), pytest.raises(OSError) as err:
+        atomic_write_json(tmp_path / "v000001.json", {"a": 1})
+    assert err.value.errno == errno.ENOSPC and str(tmp_path / "v000001.json") in str(err.value)
+    assert list(tmp_path.iterdir()) == []
