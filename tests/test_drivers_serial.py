@@ -183,3 +183,19 @@ def test_serial_garbage_from_the_unit_is_counted_and_no_sample_is_lost(tmp_path:
     seq = ring.pop()["seq"].astype(int)
     assert np.all(np.diff(seq) == 1)
     assert st["errors"]["garbage_bytes"] > 0 and st["errors"]["lost_samples"] == 0
+
+
+def test_a_port_this_user_may_not_open_gets_the_permission_advice(monkeypatch) -> None:
+    """EACCES said "check that the unit is plugged in" first (an operator's audit): the port is there."""
+    import serial as pyserial
+
+    def denied(url: str, **kw: object) -> None:
+        why = f"could not open port {url}: [Errno 13] Permission denied: '{url}'"
+        raise pyserial.SerialException(13, why)
+
+    monkeypatch.setattr(pyserial, "serial_for_url", denied)
+    link = SerialLink("/dev/ttyUSB7", RingBuffer(10), lambda m: None)
+    with pytest.raises(LinkError) as err:
+        link._open()
+    assert "Permission denied" in str(err.value) and "may not open it" in str(err.value)
+    assert "plugged in" not in str(err.value)

@@ -24,9 +24,15 @@ DEFAULT_BAUDRATE = 921600
 """The unit's default line rate [bit/s]; ignored by ptys, sockets and loop://."""
 
 
-def _fix_hint(url: str) -> str:
+def _fix_hint(url: str, err: BaseException | None = None) -> str:
     if "://" in url:
         return "check the URL and that the server behind it is running"
+    errno_ = getattr(err, "errno", None)
+    if errno_ is None and isinstance(err.__context__ if err is not None else None, OSError):
+        errno_ = err.__context__.errno  # pyserial wraps the OSError
+    if errno_ == 13 or "Permission denied" in str(err or ""):  # EACCES: the port is there
+        return ("this user may not open it: add it to the port's group (ls -l the device; usually "
+                "dialout), or fix the udev rule's GROUP/MODE")
     return ("check that the unit is plugged in and the path is right (ls /dev/ttyUSB* /dev/serial/by-id/), "
             "and that this user may open it (group dialout)")
 
@@ -63,7 +69,7 @@ class SerialLink(Link):
                                          write_timeout=self.write_timeout_s)
         except (serial.SerialException, OSError, ValueError) as err:
             reason = str(err).splitlines()[0] if str(err) else type(err).__name__
-            msg = f"serial port {self.url!r} cannot be opened ({reason}); {_fix_hint(self.url)}"
+            msg = f"serial port {self.url!r} cannot be opened ({reason}); {_fix_hint(self.url, err)}"
             raise LinkError(msg) from err
         self._port = port
         self._decoder.reset()  # bytes of a frame cut by the last disconnect are not resumed
