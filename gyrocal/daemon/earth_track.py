@@ -4,8 +4,8 @@ Why: a gyro at rest reads the Earth's rotation (15.041 deg/h) as true rate (gyro
 The daemon learns the rate at rest as drift, so without this it learnt the Earth's rotation into the
 unit's set. On a unit that turns with the Earth, the demo unit and the fibre unit were never pushed
 (the part along north changes with every pose's heading, which no gravity term can follow, and the
-push gate saw 1.7-2 deg/h it could not remove), and the tactical unit was left with 6-10 deg/h
-instead of 3 (`benchmarks/bench_earth.py`).
+push gate saw 1.7-2 deg/h it could not remove), and the tactical unit was left with 6-11 deg/h
+instead of 3-5 (`benchmarks/bench_earth.py`).
 
 With ``site.latitude_deg`` the vertical part is known at every sample from the accelerometers. The
 part along north needs the heading, which a unit that knows only gravity cannot see. But a tumble
@@ -34,8 +34,8 @@ from gyrocal.protocol.messages import SEQ_MODULO
 
 HEADING_SIGMA_DEG = 3.0
 """North is fixed once the fit's 1-sigma heading error is below this [deg]: 15 deg/h x cos(latitude)
-x sin(3 deg) = 0.55 deg/h at 45 deg, of which the next fit removes most (it is refit from the data
-after the restart, never trusted blindly)."""
+x sin(3 deg) = 0.55 deg/h at 45 deg at one sigma. The demo and fibre units fix it at 2.3-2.9 deg about
+20 s into the tumble and are left with 0.19-0.25 deg/h (bench_earth.py); it is not refined after."""
 GAP_TURN_MAX_DEG = 1.0
 """A gap in seq is bridged when the unit can have turned less than this [deg] during it (at the rate of
 the sample after it); a longer turn loses the reference, since its part about the vertical is unseen."""
