@@ -24,6 +24,8 @@ def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
         (["--schedule", "/nonexistent/poses.yaml"], "cannot read the schedule"),
         (["--rate", "0"], "--rate"),
         (["--garbage-rate", "2"], "--garbage-rate"),
+        (["--latitude", "95"], "-90 to 90"),
+        (["--link", "mavlink", "--latitude", "45"], "autopilot's Earth does not turn"),
         (["--lose-burst", "0.2"], "--lose-every"),
         (["--effect", "warmup_tau_s=0"], "one finite number > 0"),
         (["--effect", "warm=1"], "NAME one of"),

@@ -176,6 +176,11 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError(f"--lose-burst {args.lose_burst:g}: give --lose-every S, longer than the burst")
     if not 0.0 <= args.garbage_rate <= 1.0:
         raise ConfigError(f"--garbage-rate {args.garbage_rate:g}: must be a probability in [0, 1]")
+    if args.latitude is not None and not -90.0 <= args.latitude <= 90.0:
+        raise ConfigError(f"--latitude {args.latitude:g}: write a latitude in degrees, -90 to 90")
+    if args.latitude is not None and args.link == "mavlink":
+        raise ConfigError("--latitude: the virtual autopilot's Earth does not turn; use it with --link pty "
+                          "or can")
     if args.link == "can" and args.pty_link:
         raise ConfigError("--pty-link only applies to --link pty")
     if not 0 <= args.can_node_id <= 15:
@@ -227,8 +232,6 @@ def main(args: argparse.Namespace) -> int:
     truth = set_noise(grade_truth(args.grade, args.rate), args.noise)  # a grade, then --noise on top
     truth = set_effects(truth, args.effect)
     if args.latitude is not None:
-        if not -90.0 <= args.latitude <= 90.0:
-            raise ConfigError(f"--latitude {args.latitude:g}: write a latitude in degrees, -90 to 90")
         truth = dataclasses.replace(truth, latitude_deg=args.latitude, heading_deg=args.heading)
     unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
     _load_flash(unit, args.flash)
