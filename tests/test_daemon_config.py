@@ -179,7 +179,8 @@ def test_cross_field_and_convergence_ranges(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"field 'monitor.window_s' is 1; write a window >= validation"):
         load_config(path)
     path.write_text("link: {url: /dev/x}\nestimator: {convergence: {window: 0}}\n")
-    with pytest.raises(ConfigError, match=r"c.yaml: field 'estimator': convergence.window: 0 must be > 0"):
+    with pytest.raises(ConfigError,
+                       match=r"c.yaml: field 'estimator.convergence.window' is 0; write a number > 0"):
         load_config(path)
 
 

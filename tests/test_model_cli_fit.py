@@ -60,10 +60,10 @@ def test_fit_user_errors_exit_2_with_one_line(log_path: Path, capsys: pytest.Cap
 def test_convergence_config_from_dict_names_file_field_and_fix() -> None:
     cfg = ConvergenceConfig.from_dict({"window": 500, "max_sigma_dps": 1e-4}, source="d.yaml")
     assert cfg.window == 500 and cfg.max_sigma_dps == 1e-4 and cfg.min_rank == ConvergenceConfig().min_rank
-    with pytest.raises(ConfigError, match=r"d.yaml: convergence.windw: unknown field; use one of window"):
+    with pytest.raises(ConfigError, match=r"d.yaml: field 'convergence.windw' is unknown; use one of window"):
         ConvergenceConfig.from_dict({"windw": 5}, source="d.yaml")
-    with pytest.raises(ConfigError, match=r"convergence.window: 'x' is not an integer"):
+    with pytest.raises(ConfigError, match=r"field 'convergence.window' is 'x', not an integer"):
         ConvergenceConfig.from_dict({"window": "x"}, source="d.yaml")
-    with pytest.raises(ConfigError, match=r"max_error_ratio: -1 must be > 0"):
+    with pytest.raises(ConfigError, match=r"'convergence.max_error_ratio' is -1; write a number > 0"):
         ConvergenceConfig.from_dict({"max_error_ratio": -1}, source="d.yaml")
     assert np.isfinite(ConvergenceConfig.from_dict(None).max_change_dps)

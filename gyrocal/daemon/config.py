@@ -320,7 +320,7 @@ def _check_ranges(s: dict[str, dict[str, Any]], name: str) -> None:
     if s["monitor"]["window_s"] < val["block_s"]:
         _fail(name, "monitor.window_s", s["monitor"]["window_s"],
               f"write a window >= validation.block_s ({val['block_s']:g} s): it holds whole still blocks")
-    ConvergenceConfig.from_dict(est["convergence"], f"{name}: field 'estimator'")  # raises with the field
+    ConvergenceConfig.from_dict(est["convergence"], name, "estimator.convergence")  # raises with the field
 
 
 def _resolve_terms(value: str | list[Any], name: str) -> list[str]:

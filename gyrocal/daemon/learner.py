@@ -105,8 +105,8 @@ class Learner:
         conv.setdefault("min_samples", n_win)
         conv.setdefault("max_sigma_dps", float("inf"))  # the predicted-drift gate replaces these
         conv.setdefault("max_change_dps", float("inf"))
-        kw: dict[str, Any] = {"forgetting": est["forgetting"],
-                              "convergence": ConvergenceConfig.from_dict(conv, f"{cfg.source} estimator")}
+        conv_cfg = ConvergenceConfig.from_dict(conv, cfg.source, "estimator.convergence")
+        kw: dict[str, Any] = {"forgetting": est["forgetting"], "convergence": conv_cfg}
         if prior_c is not None:
             kw["prior_dps"] = prior_c
         if est["method"] in ("lms", "nlms"):

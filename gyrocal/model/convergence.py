@@ -41,28 +41,32 @@ class ConvergenceConfig:
     """Largest 1-sigma of a determined coefficient [deg/s] (3.6 deg/h)."""
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None, source: str = "config") -> ConvergenceConfig:
-        """Build from a mapping; raise ConfigError naming the source, the field and the fix."""
+    def from_dict(cls, d: Mapping[str, Any] | None, source: str = "config",
+                  section: str = "convergence") -> ConvergenceConfig:
+        """Build from a mapping; raise ConfigError naming the source, the field and the fix.
+
+        ``section``: the dotted name the fields sit under in the source (the daemon's config says
+        ``estimator.convergence``), so the message names the field as the file spells it."""
         if d is None:
             return cls()
         if not isinstance(d, Mapping):
-            raise ConfigError(f"{source}: section 'convergence' must be a mapping of field: value")
+            raise ConfigError(f"{source}: field '{section}' must be a mapping of field: value")
         known = {f.name: f for f in fields(cls)}
         out: dict[str, Any] = {}
         for key, value in d.items():
             if key not in known:
                 raise ConfigError(
-                    f"{source}: convergence.{key}: unknown field; use one of {', '.join(known)}")
+                    f"{source}: field '{section}.{key}' is unknown; use one of {', '.join(known)}")
             want_int = known[key].type in ("int", int)
             ok = isinstance(value, int) if want_int else isinstance(value, int | float)
             if isinstance(value, bool) or not ok:
                 kind = "an integer" if want_int else "a number"
-                raise ConfigError(f"{source}: convergence.{key}: {value!r} is not {kind}; write e.g. "
+                raise ConfigError(f"{source}: field '{section}.{key}' is {value!r}, not {kind}; write e.g. "
                                   f"{key}: {getattr(cls(), key)}")
-            if value < 0 or (key in ("window", "max_error_ratio") and value <= 0):
-                raise ConfigError(f"{source}: convergence.{key}: {value!r} must be > 0"
-                                  if key in ("window", "max_error_ratio")
-                                  else f"{source}: convergence.{key}: {value!r} must be >= 0")
+            strict = key in ("window", "max_error_ratio")
+            if value < 0 or (strict and value <= 0):
+                raise ConfigError(f"{source}: field '{section}.{key}' is {value!r}; write a number "
+                                  f"{'> 0' if strict else '>= 0'}, e.g. {key}: {getattr(cls(), key)}")
             out[key] = int(value) if want_int else float(value)
         return cls(**out)
 
