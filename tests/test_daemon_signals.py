@@ -53,3 +53,52 @@ def test_a_storm_of_signals_never_hangs_the_loop(tmp_path: Path) -> None:
     # signals of one kind that arrive before the handler runs are merged by the OS; every one that
     # was handled became work, and SIGTERM then stopped the loop cleanly
     assert reloads >= 1 and cmds >= 1, out.stdout
+
+
+def test_a_daemon_killed_by_sigkill_takes_its_virtual_unit_with_it(tmp_path: Path) -> None:
+    """`gyrocal run` on the packaged default starts `gyrocal sim` as its child. A kill -9 of the daemon
+    left that unit running, orphaned, on a pty nobody reads (an operator's audit); the unit now asks
+    the kernel for SIGTERM when its parent dies (--parent-pid)."""
+    import os
+    import signal
+    import time
+
+    env = {**os.environ}
+    daemon = subprocess.Popen([sys.executable, "-m", "gyrocal.cli", "run", "--state-dir", str(tmp_path / "s"),
+                               "--socket", str(tmp_path / "c.sock")], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, env=env)
+    children: list[int] = []
+    try:
+        end = time.monotonic() + 30
+        while time.monotonic() < end and not children:
+            try:
+                text = Path(f"/proc/{daemon.pid}/task/{daemon.pid}/children").read_text()
+                children = [int(c) for c in text.split()]
+            except OSError:
+                pass
+            time.sleep(0.2)
+        assert children, "the daemon started no virtual unit"
+        time.sleep(1.0)  # the unit is up and streaming
+        daemon.send_signal(signal.SIGKILL)
+        daemon.wait(10)
+        end = time.monotonic() + 10
+        while time.monotonic() < end and any(Path(f"/proc/{c}").exists() and
+                                             "Z" not in _state(c) for c in children):
+            time.sleep(0.1)
+        assert not any(Path(f"/proc/{c}").exists() and "Z" not in _state(c) for c in children)
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        for c in children:
+            try:
+                os.kill(c, signal.SIGKILL)
+            except OSError:
+                pass
+
+
+def _state(pid: int) -> str:
+    """The process state letter from /proc/PID/stat ('' if it is gone)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""

@@ -76,7 +76,7 @@ def start_virtual_unit(
             "dwell_s": sched.dwell_s, "move_s": sched.move_s, "poses": sched.poses_g.tolist()}))
     cmd = [sys.executable, "-m", "gyrocal.cli", "sim", "--seed", str(vcfg["seed"]),
            "--rate", str(vcfg["rate_hz"]), "--schedule", str(schedule_path),
-           "--status-json", str(status_path)]
+           "--status-json", str(status_path), "--parent-pid", str(os.getpid())]
     if kind == "can":
         port = can_port or free_udp_port()
         channel = "239.74.163.2"

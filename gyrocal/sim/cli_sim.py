@@ -19,6 +19,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import signal
 import sys
 from pathlib import Path
@@ -119,6 +120,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="go silent S s after start (see --silence-for; SIGUSR2 toggles at run time)")
     f.add_argument("--silence-for", type=float, default=0.0, metavar="S", help="length of that silence [s]")
     p.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+    p.add_argument("--parent-pid", type=int, default=None, metavar="PID",
+                   help="stop when process PID (the daemon that started this unit) dies, even by SIGKILL")
     from gyrocal.sim.autopilot_run import configure as configure_autopilot
 
     configure_autopilot(p)
@@ -211,7 +214,24 @@ def _load_flash(unit: VirtualUnit, path: str | None) -> None:
         raise ConfigError(msg) from err
 
 
+def _die_with_parent(parent_pid: int) -> None:
+    """SIGTERM to this unit when its parent dies, even by SIGKILL (Linux prctl PR_SET_PDEATHSIG), so
+    a daemon that was killed leaves no orphan unit on the pty (an operator's audit). Set in the child
+    itself: a preexec_fn is unsafe in a process with threads. A parent that died before the call is
+    seen by getppid."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the service manager's cgroup still stops it
+        return
+    if os.getppid() != parent_pid:
+        raise SystemExit(0)
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.parent_pid is not None:
+        _die_with_parent(args.parent_pid)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="gyrocal sim: %(levelname)s %(message)s")
     if logging.getLogger().level > logging.INFO:  # a bus that failed to open warns again from __del__
