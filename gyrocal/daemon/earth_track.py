@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gyrocal.model.earth import OMEGA_IE_DPS, vertical_earth_rate_dps
+from gyrocal.model.earth import OMEGA_IE_DPS, horizontal_basis
 from gyrocal.protocol.messages import SEQ_MODULO
 
 HEADING_SIGMA_DEG = 3.0
@@ -74,11 +74,10 @@ class EarthTrack:
         self._refs: list[dict[str, np.ndarray | float]] = []  # per reference: its sums and its up
 
     def _new_reference(self, up: np.ndarray) -> None:
+        if len(self._refs) >= MAX_REFERENCES:  # a link that loses samples for hours: start the sums over
+            self._reset_sums()
         p = self.n_terms
         self._refs.append({"phi_h": np.zeros((3, p, 3)), "h_y": np.zeros(3), "n": 0.0, "up": up.copy()})
-        if len(self._refs) > MAX_REFERENCES:  # a link that loses samples for hours: start the sums over
-            self._reset_sums()
-            self._refs.append({"phi_h": np.zeros((3, p, 3)), "h_y": np.zeros(3), "n": 0.0, "up": up.copy()})
 
     @property
     def known(self) -> bool:
@@ -154,11 +153,6 @@ class EarthTrack:
             e[ok] = np.einsum("nji,j->ni", c[ok], self.h)
         return e
 
-    def earth_dps(self, c: np.ndarray, a_g: np.ndarray) -> np.ndarray:
-        """The Earth rate [deg/s] (N, 3) in the body: the vertical part from the accelerometers, the
-        part along north where it is known (``horizontal_dps``)."""
-        return vertical_earth_rate_dps(a_g, self.latitude_deg) + self.horizontal_dps(c)
-
     def add(self, phi: np.ndarray, y: np.ndarray, c: np.ndarray) -> None:
         """Running sums over still samples: terms (N, P), rate at rest less the vertical Earth rate and
         plus the unit's compensation (N, 3) [deg/s], and their C (N, 3, 3) in the current reference."""
@@ -191,7 +185,7 @@ class EarthTrack:
             return False
         m_pinv = (vec[:, keep] / ev[keep]) @ vec[:, keep].T
         k = len(self._refs)
-        bases = [_horizontal_basis(r["up"]) for r in self._refs]  # (3, 2) each
+        bases = [horizontal_basis(r["up"]) for r in self._refs]  # (3, 2) each
         # G (K, 3 axes, P, 2): each reference's sums turned into its horizontal plane
         g = np.stack([np.einsum("ipk,kl->ipl", r["phi_h"], bases[j]) for j, r in enumerate(self._refs)])
         n_ref = np.array([float(r["n"]) for r in self._refs])
@@ -228,12 +222,3 @@ class EarthTrack:
                 "fit_magnitude": (None if not np.isfinite(self.fit_magnitude)
                                   else round(self.fit_magnitude, 3)),
                 "references": self.references, "last_loss": self.last_loss, "samples": self._n}
-
-
-def _horizontal_basis(up: np.ndarray) -> np.ndarray:
-    """Two unit vectors (3, 2) spanning the plane normal to ``up``."""
-    ref = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = ref - up * float(ref @ up)
-    e1 /= np.linalg.norm(e1)
-    return np.column_stack([e1, np.cross(up, e1)])
-

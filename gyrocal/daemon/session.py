@@ -77,6 +77,7 @@ from gyrocal.daemon.poses import PoseLog
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
 from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
+from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
 from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello, NakReason
@@ -183,9 +184,7 @@ class Session(RecoveryMixin):
         self.applied: AppliedSet | None = None
         self.started = now
         self.rate_hz = rate_hz
-        block = int(round(cfg.validation["block_s"] * rate_hz))
-        self.acc = BlockAccumulator(block, cfg.validation["holdout_every"], len(self.names))
-        self.holdout = BlockWindow(512)
+        self._new_blocks()
         monitor_blocks = int(cfg.monitor["window_s"] / cfg.validation["block_s"])
         self.monitor = BlockWindow(max(4, monitor_blocks))
         self.push: PushTransaction | None = None
@@ -325,7 +324,7 @@ class Session(RecoveryMixin):
             c_ref = self.earth.advance(samples["seq"], samples["t"], out, acc_g, still)
             clean = self.earth.known & np.isfinite(c_ref[:, 0, 0])
             north_part = self.earth.horizontal_dps(c_ref)  # the fit's sums take the rate with it in
-            out = out - self.earth.earth_dps(c_ref, acc_g)
+            out = out - vertical_earth_rate_dps(acc_g, self.earth.latitude_deg) - north_part
         rate = np.abs(cols["dtemp"])
         rate = rate[np.isfinite(rate)]
         if rate.size:  # the fastest warming this session, for refine.settled
@@ -569,15 +568,19 @@ class Session(RecoveryMixin):
             log.warning("unit %s: the horizontal Earth rate fitted is %.2f x that of site.latitude_deg "
                         "%.4g: check the latitude", self.hello.serial, e.fit_magnitude, e.latitude_deg)
         self.learner = self.learner.fresh()
-        block = int(round(self.cfg.validation["block_s"] * self.rate_hz))
-        self.acc = BlockAccumulator(block, self.cfg.validation["holdout_every"], len(self.names))
-        self.holdout = BlockWindow(512)
+        self._new_blocks()
         self.monitor.clear()
         self._next_validation_at = 0
         self._validated_at = 0
         self._said_converged = False
         if self.state in (State.CONVERGED, State.VALIDATING):
             self.state = State.COLLECTING
+
+    def _new_blocks(self) -> None:
+        """Empty still-block accumulator and held-out window (at start, and when learning starts again)."""
+        block = int(round(self.cfg.validation["block_s"] * self.rate_hz))
+        self.acc = BlockAccumulator(block, self.cfg.validation["holdout_every"], len(self.names))
+        self.holdout = BlockWindow(512)
 
     def _refused_terms(self) -> str | None:
         """Why the unit will not take this session's term set (a NAK UNKNOWN_TERMS), or None."""

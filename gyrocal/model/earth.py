@@ -37,13 +37,19 @@ def earth_rate_body_dps(up_body: np.ndarray, north_body: np.ndarray, latitude_de
     return OMEGA_IE_DPS * (np.cos(lat) * np.asarray(north_body) + np.sin(lat) * np.asarray(up_body))
 
 
+def horizontal_basis(up: np.ndarray) -> np.ndarray:
+    """Two unit vectors (3, 2) spanning the plane normal to the unit vector ``up``: the body's x axis
+    projected on it (y when x is near vertical), then up x that."""
+    ref = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = ref - up * float(ref @ up)
+    e1 /= np.linalg.norm(e1)
+    return np.column_stack([e1, np.cross(up, e1)])
+
+
 def north_in_body(up_body: np.ndarray, heading_deg: float) -> np.ndarray:
     """North [unit vector] in the body frame of a unit whose up is ``up_body`` and whose x axis,
     projected on the horizontal, points ``heading_deg`` east of north (y when x is vertical)."""
     up = np.asarray(up_body, dtype=np.float64)
-    up = up / np.linalg.norm(up)
-    ref = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    h = ref - up * float(ref @ up)
-    h = h / np.linalg.norm(h)
+    basis = horizontal_basis(up / np.linalg.norm(up))
     psi = np.radians(heading_deg)
-    return np.cos(psi) * h + np.sin(psi) * np.cross(up, h)
+    return basis @ np.array([np.cos(psi), np.sin(psi)])
