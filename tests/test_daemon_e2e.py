@@ -107,8 +107,9 @@ def _check_tenfold(tmp: Path) -> None:
         assert comp[a] * 10 <= raw[a], (a, raw[a], comp[a])
 
 
-def _control_commands(sock: Path, tmp_path: Path) -> None:
-    """status, recalibrate and rollback through the CLI, as an operator would type them."""
+def _control_commands(sock: Path, tmp_path: Path) -> int:
+    """status, recalibrate and rollback through the CLI, as an operator would type them; returns the
+    version the operator's file push made."""
     out = subprocess.run([*PY, "status", "--json", "--socket", str(sock)], capture_output=True,
                          text=True, timeout=30)
     assert out.returncode == 0 and json.loads(out.stdout)["state"] == "MONITORING"
@@ -140,6 +141,7 @@ def _control_commands(sock: Path, tmp_path: Path) -> None:
     wait_for(lambda: (status(sock).get("last_push") or {}).get("version") == version and
              status(sock)["last_push"]["status"] == "acked", 20, "the pushed file", tmp_path)
     wait_for(lambda: unit_status(tmp_path)["applied_version"] == version, 10, "the unit to apply it")
+    return version
 
 
 def test_daemon_and_unit_over_a_pty_push_and_cut_drift_tenfold(tmp_path: Path) -> None:
@@ -152,9 +154,15 @@ def test_daemon_and_unit_over_a_pty_push_and_cut_drift_tenfold(tmp_path: Path) -
         assert st["last_push"]["readback_ok"] and st["state"] == "MONITORING"
         assert st["link"]["frames"] > 0
         _check_tenfold(tmp_path)
-        _control_commands(sock, tmp_path)
+        version = _control_commands(sock, tmp_path)
         assert stop(daemon) == 0
         assert "stopped" in (tmp_path / "daemon.log").read_text()
+        # a restarted daemon (the unit runs on) resumes this switch-on: it holds the operator's set
+        daemon, sock = start_daemon(tmp_path, {"kind": "serial", "url": str(tmp_path / "unit.pty")})
+        st = wait_for(lambda: (s := status(sock)).get("resumed_from") is not None and s, 30,
+                      "the session to resume", tmp_path)
+        assert st["resumed_from"] == version and st["sessions"] == 1
+        assert f"the same switch-on as v{version}" in (tmp_path / "daemon.log").read_text()
     finally:
         if daemon is not None:
             stop(daemon)

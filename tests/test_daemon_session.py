@@ -184,3 +184,50 @@ def test_the_measured_rate_comes_from_sample_time_stamps_in_any_block_size(tmp_p
     for k in range(400):  # one sample per block
         eng._feed(block[k:k + 1], 0.0)
     assert eng.rate_hz == 200.0
+
+
+def test_a_daemon_restarted_within_a_switch_on_resumes_it_with_no_bias_stage(tmp_path: Path, caplog) -> None:
+    """The unit's v1 was acked in this boot; a new daemon hears the same boot counter and a clock that
+    went on, so the session resumes: no bias-only set (an operator's audit found a restart minting
+    one for the same switch-on). A boot counter that comes back with the clock gone back is a new
+    switch-on whose counter did not count: calibrated as one, with a WARNING."""
+    import dataclasses
+    import logging
+
+    from gyrocal.daemon.learner import make_learner
+    from gyrocal.daemon.session import Session, same_boot
+    from gyrocal.daemon.stillness import StillDetector
+    from tests.daemon_harness import RATE_HZ
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    v1 = h.store.latest(4242)
+    assert v1.push["unit"]["boot_count"] == h.session.hello.boot_count and v1.push["unit"]["time_s"] > 0
+
+    def restart(hello) -> Session:  # what the engine does at a HELLO (engine._start_session)
+        prior = h.store.held_last(4242)
+        h.detector = StillDetector.for_rate(RATE_HZ, h.cfg.still)
+        return Session(h.cfg, hello, make_learner(h.cfg, prior, RATE_HZ), h.store, h.send, h.now, RATE_HZ,
+                       prior.version, same_boot=same_boot(prior, hello))
+
+    caplog.set_level(logging.INFO, logger="gyrocal.session")
+    h.session = restart(h.session.hello)  # the unit runs on: same boot, its clock past the push
+    h.run(20)
+    s = h.session
+    assert s.resumed_from == v1.version and s.status()["resumed_from"] == v1.version
+    assert not s.last_push and h.store.latest(4242).version == v1.version  # no bias stage
+    assert s.learner.samples > 0  # it learns on, for a full set
+    assert any(f"the same switch-on as v{v1.version}" in r.getMessage() for r in caplog.records)
+
+    old_hello = h.session.hello
+    h.unit.power_on()  # a new switch-on (clock from 0) that announces the old boot counter
+    h.session = restart(dataclasses.replace(old_hello))
+    h.run(20, until=_pushed)
+    s = h.session
+    assert s.resumed_from is None
+    said = [r.getMessage() for r in caplog.records
+            if r.levelno == logging.WARNING and "went back" in r.getMessage()]
+    assert len(said) == 1, said
+    assert s.last_push.get("status") == "acked"  # its bias stage
+    assert h.store.latest(4242).version > v1.version

@@ -52,7 +52,7 @@ from gyrocal.daemon.notify import Notifier
 from gyrocal.daemon.reconcile import close_abandoned
 from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
-from gyrocal.daemon.session import Session
+from gyrocal.daemon.session import Session, same_boot
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
 from gyrocal.drivers import open_link
@@ -394,9 +394,9 @@ class Engine(CommandsMixin):
                 s.unconfirmed = None
                 self._seq_session_at = None
                 return
-            log.info("HELLO from unit %d (firmware %s, boot %d): switch-on, new session",
+            log.info("HELLO from unit %d (firmware %s, boot %d): new session",
                      msg.serial, msg.fw_version, msg.boot_count)
-            self._start_session(msg, now)
+            self._start_session(msg, now, from_hello=True)
             held = self.seq.expect_restart()  # the next jump in the numbering is this switch-on's
             if held is not None:
                 self._feed(held, now)
@@ -419,7 +419,9 @@ class Engine(CommandsMixin):
             if self.session is not None:
                 self.session.relink(now)
 
-    def _start_session(self, hello: Hello, now: float) -> None:
+    def _start_session(self, hello: Hello, now: float, from_hello: bool = False) -> None:
+        """A new session for ``hello``'s unit; ``from_hello``: the unit itself said who it is (a
+        restart seen only in the samples reuses the last HELLO, whose boot counter proves nothing)."""
         old = self.session
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
@@ -436,7 +438,7 @@ class Engine(CommandsMixin):
         self._seq_session_at = None
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version,
-                               caps=caps)
+                               caps=caps, same_boot=same_boot(prior, hello) if from_hello else None)
         self.sessions_started += 1
         if old is not None:  # push results the store could not take yet: carried over, not lost
             self.session.unrecorded.extend(old.unrecorded)
@@ -477,6 +479,8 @@ class Engine(CommandsMixin):
         if self.session is None:
             self.samples_before_hello += block.size
             return
+        if block.size:
+            self.session.heard(float(block["t"][-1]))
         decided, still = self.detector.feed(block)
         self.session.feed(decided, still, now)
         if decided.size:

@@ -135,6 +135,18 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
     return [[float(v) if np.isfinite(v) else None for v in row] for row in np.atleast_2d(a)]
 
 
+def same_boot(prior: CalibrationRecord | None, hello: Hello) -> dict[str, Any] | None:
+    """``{"version", "time_s", "stage"}`` when the stored set the unit held last was acked in the boot
+    ``hello`` names, at unit time ``time_s`` [s]; ``stage``: "bias" for a bias-only set, else what its
+    validation said (None for an operator's file). None otherwise (and for records older than that)."""
+    unit = (prior.push.get("unit") or {}) if prior is not None else {}
+    t = unit.get("time_s")
+    if unit.get("boot_count") != hello.boot_count or not isinstance(t, int | float) or not np.isfinite(t):
+        return None
+    stage = (prior.stats.get("validation") or {}).get("stage")
+    return {"version": prior.version, "time_s": float(t), "stage": stage}
+
+
 DPH = 3600.0
 SPHERE_G = (lambda v: v / np.linalg.norm(v, axis=1)[:, None])(np.random.default_rng(7).normal(size=(256, 3)))
 """Directions [g] over which the drift a set leaves is predicted (fixed, seeded)."""
@@ -165,7 +177,7 @@ class Session(RecoveryMixin):
     def __init__(
         self, cfg: Any, hello: Hello, learner: Learner, store: Any, send: Callable[[Any], None],
         now: float, rate_hz: float, warm_started_from: int | None = None,
-        caps: UnitCapabilities = PROTOCOL,
+        caps: UnitCapabilities = PROTOCOL, same_boot: dict[str, Any] | None = None,
     ) -> None:
         self.cfg = cfg
         self.caps = caps  # what the unit can hold: a set is projected onto it before a push
@@ -180,6 +192,10 @@ class Session(RecoveryMixin):
         self.spec = TermSpec.parse(self.names)
         self.terms_id = terms_id(self.names)
         self.warm_started_from = warm_started_from
+        # the warm start's push was acked in this boot ({"version", "time_s"}): if the unit's clock went
+        # on from it, this daemon restarted within the switch-on it calibrated (see _check_same_boot)
+        self._same_boot = same_boot
+        self.resumed_from: int | None = None
         self.state = State.COLLECTING
         self.applied: AppliedSet | None = None
         self.started = now
@@ -216,6 +232,7 @@ class Session(RecoveryMixin):
         self._validated_at = 0  # learner samples at the last validation
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
+        self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
@@ -286,6 +303,10 @@ class Session(RecoveryMixin):
         # dtemp follows the unit's rule from the session's first sample, also while the unit's set is
         # still being read: a copy started later is not the unit's for WINDOW seconds (TempRate.exact)
         dtemp, exact = self._trate.update_exact(samples["t"], samples["temp"], samples["seq"])
+        self._t_last = float(samples["t"][-1])  # the newest decided sample's time [s]
+        self.heard(self._t_last)
+        if self._same_boot is not None:
+            self._check_same_boot(float(samples["t"][0]))
         if self.samples == samples.size and int(samples["seq"][0]) == 0 \
                 and float(samples["t"][0]) > FIRST_SAMPLE_MAX_S:
             log.warning("unit %s: its first sample (seq 0) is stamped %.1f s, but unit time counts "
@@ -340,7 +361,6 @@ class Session(RecoveryMixin):
         if c_ref is not None and self.earth.found_before:
             still = still & clean
         blocks, train = self.acc.feed(raw, out, phi, still)
-        self._t_last = float(samples["t"][-1])
         for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
             b.t_s = self._t_last
         self.still_samples += int(still.sum())
@@ -356,6 +376,44 @@ class Session(RecoveryMixin):
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
         self._note_poses(blocks, cols)
+
+    def heard(self, t_unit: float) -> None:
+        """The unit's clock [s] as of the newest sample heard. The engine calls it before the still
+        detector, which holds samples back for a second or more at a session's start: an operator's
+        rollback in that second is recorded with the unit time of its push too."""
+        if not self.unit_clock_s >= t_unit:  # NaN at first
+            self.unit_clock_s = t_unit
+
+    def _check_same_boot(self, t_unit: float) -> None:
+        """Whether this session resumes the switch-on of the set the unit holds, from its first sample.
+
+        The boot counter alone is the unit's word (protocol.md: +1 per switch-on, kept in flash); the
+        unit's clock counts from switch-on, so it must also have gone on from the push's time [s].
+
+        A resumed session whose held set is a full set pushes no bias stage: that set was learnt over
+        this switch-on's poses, and a bias-only set from one still pose replaced it with no gain (an
+        operator's audit; ``benchmarks/bench_resume.py --no-resume``, 4 restarts 30 s apart, demo seeds
+        1-6: two bias stages each on seeds 3 and 4, leaving 0.32/0.36/0.18 and 0.29/0.32/0.36 deg/h;
+        resumed, none, leaving 0.34/0.27/0.19 and 0.28/0.28/0.35). Over a held bias stage, itself from
+        one second, the bias stage stays: skipping it there left 0.27/0.71/0.68 deg/h on seed 5, where
+        redoing it leaves 0.32/0.32/0.34. It learns on for a full set either way."""
+        sb, self._same_boot = self._same_boot, None
+        if sb is None:
+            return
+        if t_unit >= sb["time_s"]:
+            self.resumed_from = int(sb["version"])
+            self._bias_pushed = sb["stage"] != "bias"
+            v = sb["version"]
+            kind = "a full set" if sb["stage"] == "full" else "an operator's set"
+            then = (f"v{v} is {kind}: no bias stage, learning on for a full set"
+                    if self._bias_pushed else f"v{v} is a bias-only set: its bias stage may be redone")
+            log.info("unit %s: the same switch-on as v%d (boot %d; unit time %.1f s, %.1f s at its push): "
+                     "this daemon restarted; %s", self.hello.serial, v, self.hello.boot_count, t_unit,
+                     sb["time_s"], then)
+        else:
+            log.warning("unit %s: boot %d again, but the unit's clock went back (%.1f s, %.1f s at v%d's "
+                        "push): a new switch-on whose boot counter did not count; calibrating it as one",
+                        self.hello.serial, self.hello.boot_count, t_unit, sb["time_s"], sb["version"])
 
     def _note_poses(self, blocks: list[Any], cols: dict[str, np.ndarray]) -> None:
         """Remember the distinct poses seen (block-mean terms), for the predicted drift (poses.py)."""
@@ -426,9 +484,11 @@ class Session(RecoveryMixin):
                     f"{self.cfg.push['wander_horizon_s']:g} s, the push cutting the total by "
                     f"{self.cfg.validation['min_improvement']:.0%})")
         if held_left is not None:
-            why += (f" on some axis (or the range seen {_range(self.temp_seen)} widen the held set's "
-                    f"{_range(held_range)} degC), leaving no axis worse than the held set's "
-                    f"{_dph(held_left)} deg/h")
+            why += " on some axis"
+            if self.temp_seen is not None or held_range is not None:  # a model with temperature terms
+                why += (f" (or the range seen {_range(self.temp_seen)} degC widen the held set's "
+                        f"{_range(held_range)} degC)")
+            why += f", leaving no axis worse than the held set's {_dph(held_left)} deg/h"
             version = self.applied.version if self.applied is not None else -1
             if wide and not g.ok and version not in self._refusal_logged:
                 self._refusal_logged.add(version)  # once per held set: the gate runs 4 times a second
@@ -792,7 +852,7 @@ class Session(RecoveryMixin):
             stats={"samples": self.samples, "still_samples": self.still_samples,
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
                    "predicted_drift_dph": self._push_prediction,
-                   "warm_started_from": self.warm_started_from,
+                   "warm_started_from": self.warm_started_from, "resumed_from": self.resumed_from,
                    # the range the set was learnt over (this and earlier switch-ons' merged) and the
                    # information on its temperature terms for the next switch-on (learner.py)
                    "temp_range_c": self.temp_range(),
@@ -863,6 +923,10 @@ class Session(RecoveryMixin):
         if self._push_prediction:
             self.last_push["predicted_drift_dph"] = self._push_prediction
             self._push_prediction = {}
+        if result.status == "acked":
+            # which switch-on took it, and when on the unit's clock [s]: a daemon restarted in the same
+            # switch-on resumes from this record instead of calibrating the switch-on again (same_boot)
+            self.last_push["unit"] = {"boot_count": self.hello.boot_count, "time_s": self.unit_clock_s}
         if result.status == "acked" and self.caps.reboot_required:
             self.last_push["reboot_required"] = True  # in the store record of the push too
         if result.status == "acked" and self.caps.board_rotation is not None:
@@ -955,6 +1019,7 @@ class Session(RecoveryMixin):
             "alarm": self.alarm,
             "last_push": self.last_push,
             "warm_started_from": self.warm_started_from,
+            "resumed_from": self.resumed_from,
             "unit_set": self.agreement,
             "faults": {"refused_reports": self.refused_reports, "send_failures": self.send_failures,
                        "coeff_read_asks": self._read_asks,
