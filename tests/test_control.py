@@ -36,8 +36,10 @@ class FakeDaemon:
 
     def __init__(self) -> None:
         self.requests: list[dict] = []
+        self.peers: list[str | None] = []  # who sent each request, as the server says (its "from")
 
     def __call__(self, req: dict) -> dict:
+        self.peers.append(req.pop("from", None))
         self.requests.append(req)
         cmd = req.get("cmd")
         if cmd == "status":
@@ -496,3 +498,26 @@ def test_clients_that_never_read_their_answers_cannot_hold_the_slots(short_dir: 
         assert request(srv.path, {"cmd": "status"}, timeout=5)["state"] == "UP"
         for s in hogs:
             s.close()
+
+
+def test_a_command_reaches_the_daemon_with_who_sent_it_as_the_kernel_says(server) -> None:
+    """SO_PEERCRED, not the client's word: a 'from' in the request is overwritten."""
+    srv, fake = server
+    assert request(srv.path, {"cmd": "recalibrate", "from": "uid 0 pid 1"})["ok"]
+    assert fake.peers[-1] == f"uid {os.getuid()} pid {os.getpid()}"
+
+
+def test_an_operator_command_is_one_log_line_with_who_and_how_it_ended(tmp_path: Path, caplog) -> None:
+    import logging
+
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.engine import Engine
+
+    eng = Engine(load_config(None, {"state_dir": str(tmp_path), "control_socket": str(tmp_path / "c")}))
+    caplog.set_level(logging.INFO, logger="gyrocal.engine")
+    reply = eng._command({"cmd": "rollback", "to": 3, "from": "uid 1000 pid 42"}, 0.0)
+    assert not reply["ok"]
+    lines = [r for r in caplog.records if "operator command" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].levelno == logging.WARNING
+    assert lines[0].getMessage() == ("operator command rollback --to 3 from uid 1000 pid 42: refused: "
+                                     "no unit session yet; wait for the unit's HELLO")

@@ -58,12 +58,17 @@ def test_a_storm_of_signals_never_hangs_the_loop(tmp_path: Path) -> None:
 def test_a_daemon_killed_by_sigkill_takes_its_virtual_unit_with_it(tmp_path: Path) -> None:
     """`gyrocal run` on the packaged default starts `gyrocal sim` as its child. A kill -9 of the daemon
     left that unit running, orphaned, on a pty nobody reads (an operator's audit); the unit now asks
-    the kernel for SIGTERM when its parent dies (--parent-pid)."""
+    the kernel for SIGTERM when its parent dies (--parent-pid). The unit's directory, which a killed
+    daemon cannot remove, is removed by the next daemon's sweep (and only a dead daemon's)."""
     import os
     import signal
     import time
 
-    env = {**os.environ}
+    from gyrocal.daemon.cli_run import sweep_unit_dirs
+
+    tmp = tmp_path / "t"
+    tmp.mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp)}
     daemon = subprocess.Popen([sys.executable, "-m", "gyrocal.cli", "run", "--state-dir", str(tmp_path / "s"),
                                "--socket", str(tmp_path / "c.sock")], stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, env=env)
@@ -86,6 +91,11 @@ def test_a_daemon_killed_by_sigkill_takes_its_virtual_unit_with_it(tmp_path: Pat
                                              "Z" not in _state(c) for c in children):
             time.sleep(0.1)
         assert not any(Path(f"/proc/{c}").exists() and "Z" not in _state(c) for c in children)
+        left = list(tmp.glob(f"gyrocal-unit-{daemon.pid}-*"))
+        assert len(left) == 1
+        mine = tmp / f"gyrocal-unit-{os.getpid()}-live"  # a running daemon's: kept
+        mine.mkdir()
+        assert sweep_unit_dirs(tmp) == left and not left[0].exists() and mine.exists()
     finally:
         if daemon.poll() is None:
             daemon.kill()

@@ -8,7 +8,11 @@ pty), so the daemon can be tried on any machine. On a vehicle the service passes
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
+import re
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -27,6 +31,32 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
 
 
+UNIT_DIR_PREFIX = "gyrocal-unit-"
+"""The virtual unit's working directory (pty link, schedule, status) is ``<tmp>/gyrocal-unit-PID-*``,
+PID the daemon's: a daemon killed by SIGKILL cannot remove it, so the next one does (sweep_unit_dirs)."""
+
+
+def sweep_unit_dirs(tmp: Path | None = None) -> list[Path]:
+    """Remove the virtual-unit directories of daemons that are gone (their PID runs nothing, and this
+    user owns them); returns what was removed. A PID taken again by another process keeps its
+    directory: only a dead owner's is removed, never a live one's."""
+    removed = []
+    root = Path(tmp or tempfile.gettempdir())
+    for d in root.glob(f"{UNIT_DIR_PREFIX}*-*"):
+        m = re.fullmatch(rf"{UNIT_DIR_PREFIX}(\d+)-\w+", d.name)
+        try:
+            if m is None or d.is_symlink() or not d.is_dir() or d.stat().st_uid != os.getuid():
+                continue
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+            log.info("removed %s, left by a daemon that was killed", d)
+        except OSError:  # alive under another user (EPERM), or gone meanwhile
+            continue
+    return removed
+
+
 def main(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     overrides = {}
@@ -38,8 +68,12 @@ def main(args: argparse.Namespace) -> int:
     log.info("gyrocal daemon starting with %s", cfg.source)
     unit = None
     link_cfg = dict(cfg.link)
-    with tempfile.TemporaryDirectory(prefix="gyrocal-unit-") as tmp:
-        if cfg.virtual_unit["enabled"]:
+    workdir = contextlib.nullcontext(None)
+    if cfg.virtual_unit["enabled"]:
+        sweep_unit_dirs()
+        workdir = tempfile.TemporaryDirectory(prefix=f"{UNIT_DIR_PREFIX}{os.getpid()}-")
+    with workdir as tmp:
+        if tmp is not None:
             unit = start_virtual_unit(cfg.virtual_unit, cfg.link["kind"], Path(tmp))
             link_cfg.update(unit.link_cfg)
             # a WARNING: on a vehicle this means the real unit is not being calibrated at all

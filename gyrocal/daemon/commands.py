@@ -39,6 +39,17 @@ class CommandsMixin:
 
     # -- commands -----------------------------------------------------------------------------
     def _command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
+        """Carry out one operator command, and log it with who gave it and how it ended: one line."""
+        reply = self._do_command(req, now)
+        cmd = req.get("cmd")
+        what = {"rollback": f"rollback{' --to ' + str(req['to']) if req.get('to') is not None else ''}",
+                "push": f"push of {len(req.get('terms') or [])} terms"}.get(str(cmd), str(cmd))
+        outcome = reply.get("message") if reply.get("ok") else f"refused: {reply.get('error')}"
+        log.log(logging.INFO if reply.get("ok") else logging.WARNING, "operator command %s from %s: %s",
+                what, req.get("from", "a client"), outcome)
+        return reply
+
+    def _do_command(self, req: dict[str, Any], now: float) -> dict[str, Any]:
         cmd = req.get("cmd")
         try:
             if cmd == "recalibrate":

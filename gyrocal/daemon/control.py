@@ -37,6 +37,7 @@ import re
 import select
 import socket
 import stat
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -203,6 +204,7 @@ class _Client:
     """One connection: when it last completed a request (or connected), and whether one is being answered."""
 
     conn: socket.socket
+    peer: str = "a client"  # who connected (peer_of), for the log line of a command that acts
     since: float = field(default_factory=time.monotonic)
     busy: bool = False
     sending: bool = False
@@ -354,7 +356,7 @@ class ControlServer:
             if self._stopping.is_set():
                 conn.close()
                 break
-            client = _Client(conn)
+            client = _Client(conn, peer_of(conn))
             with self._state_lock:
                 victim = self._evict_for_new() if len(self._clients) >= MAX_CLIENTS else None
                 full = len(self._clients) >= MAX_CLIENTS
@@ -421,7 +423,7 @@ class ControlServer:
                 return
             client.busy = True
         try:
-            reply = encode_line(self.dispatch(line))
+            reply = encode_line(self.dispatch(line, client.peer))
         finally:
             with self._state_lock:
                 client.busy = False
@@ -489,8 +491,10 @@ class ControlServer:
                     del self._clients[conn]
                 self._client_threads.discard(threading.current_thread())
 
-    def dispatch(self, line: bytes) -> dict:
-        """Parse one request line and answer it; never raises (a bad request gets an error answer)."""
+    def dispatch(self, line: bytes, peer: str = "a client") -> dict:
+        """Parse one request line and answer it; never raises (a bad request gets an error answer).
+        ``peer`` (who sent it) reaches the handler as the request's ``from``, whatever the client wrote
+        there: an operator's command is logged with the user who gave it."""
         self.requests += 1
         if len(line) > MAX_REQUEST_BYTES:
             self.errors += 1
@@ -512,6 +516,7 @@ class ControlServer:
         if not isinstance(req, dict):
             self.errors += 1
             return {"ok": False, "error": 'a request must be a JSON object, e.g. {"cmd": "status"}'}
+        req["from"] = peer
         try:
             with self._handler_lock:
                 reply = self.handler(req)
@@ -530,6 +535,17 @@ class ControlServer:
             self.errors += 1
             return {"ok": False, "error": f"internal error: answer not JSON serialisable: {err}"}
         return reply
+
+
+def peer_of(conn: socket.socket) -> str:
+    """'uid U pid P' of the process at the other end of a unix socket (SO_PEERCRED, Linux), as the
+    kernel vouches for it; 'a client' where the platform does not say."""
+    try:
+        pid, uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                             struct.calcsize("3i")))
+    except (AttributeError, OSError):
+        return "a client"
+    return f"uid {uid} pid {pid}"
 
 
 def request(path: Path | str, obj: dict, timeout: float = 5.0) -> dict:

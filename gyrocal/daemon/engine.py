@@ -231,7 +231,7 @@ class Engine(CommandsMixin):
             elif what == "reload":
                 self._pending.append(("reload",))
             else:
-                self._pending.append(("cmd", {"cmd": "recalibrate"}, None))
+                self._pending.append(("cmd", {"cmd": "recalibrate", "from": "SIGUSR1"}, None))
 
     # -- callbacks from other threads ---------------------------------------------------------
     def _on_control(self, msg: Any) -> None:
