@@ -300,9 +300,17 @@ def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:
     if back.size:
         i = int(back[0]) + 1
         raise LogFormatError(
-            f"{name}: data row {i + 1}: column 't' goes backwards ({t[i - 1]!r} -> {t[i]!r}) "
+            f"{name}: data row {i + 1}: column 't' goes backwards ({float(t[i - 1]):g} -> {float(t[i]):g} s) "
             "within one session; sort the rows or start a new session number"
         )
+    for sess in np.unique(s):  # a repeated stamp is allowed (non-decreasing); a clock that never moves is not
+        ts = t[s == sess]
+        if ts.size > 1 and ts[-1] == ts[0]:
+            raise LogFormatError(
+                f"{name}: column 't' does not advance in session {sess:g}: all {ts.size} rows are at "
+                f"{float(ts[0]):g} s; write each sample's own time [s] (a logger's time stamp or the "
+                "sample index over the rate)"
+            )
 
 
 def write_log(

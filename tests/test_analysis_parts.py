@@ -14,7 +14,7 @@ from gyrocal.analysis.hidden import write_hidden_log
 from gyrocal.analysis.holdout import moving_average
 from gyrocal.analysis.segments import detect_still
 from gyrocal.cli import main
-from gyrocal.logformat import read_log
+from gyrocal.logformat import read_log, write_log
 from gyrocal.model.terms import SEED000_TERMS, TermSpec
 from gyrocal.sim.schedule import tumble
 from gyrocal.sim.truth import SessionStream, TruthModel
@@ -130,3 +130,68 @@ def test_the_report_of_a_real_log_with_noise_findings_is_written(tmp_path: Path)
     assert "coloured_noise" in md and "the fidelity plot below" in md
     assert (rep / "allan_measured_vs_simulated.png").stat().st_size > 1000
     assert not list(rep.glob("finding_*_coloured_noise.png"))
+
+
+def test_analyze_prints_its_summary_for_a_noise_cause_and_takes_a_repeated_time_stamp(
+        tmp_path: Path, capsys) -> None:
+    """Two tracebacks an outside check found: the summary on stdout (no --json) crashed on any
+    noise cause (p_value null by Contract 2), and one repeated time stamp, which Contract 1 allows
+    (non-decreasing), made the state model's band matrix indefinite. A clock that never moves is a
+    one-line error naming the column."""
+    csv = tmp_path / "imucal.csv"
+    assert main(["convert", "imucal", str(csv)]) == 0
+    assert main(["analyze", str(csv), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "coloured_noise: axes" in out and "fidelity gain" in out and "gain (tau_s=" in out
+    log = read_log(csv)
+    cols = {k: np.array(v) for k, v in log.columns.items()}
+    cols["t"][101] = cols["t"][100]  # a logger that stamped two samples alike
+    dup = tmp_path / "dup.csv"
+    write_log(dup, cols, log.metadata)
+    assert main(["analyze", str(dup), "--json", str(tmp_path / "d.json"), "--quiet"]) == 0
+    assert json.loads((tmp_path / "d.json").read_text())["samples"]["rate_hz"] == pytest.approx(
+        json.loads(_analyze_json(csv, tmp_path))["samples"]["rate_hz"], rel=1e-3)
+    cols["t"][:] = 5.0
+    flat = tmp_path / "flat.csv"
+    write_log(flat, cols, log.metadata)
+    assert main(["analyze", str(flat), "--json", str(tmp_path / "f.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "column 't' does not advance" in err[0] and str(flat) in err[0]
+
+
+def _analyze_json(csv: Path, tmp: Path) -> str:
+    out = tmp / "o.json"
+    assert main(["analyze", str(csv), "--json", str(out), "--quiet"]) == 0
+    return out.read_text()
+
+
+def test_a_pause_in_the_logging_is_not_part_of_the_sample_rate() -> None:
+    """100 Hz with a one-hour pause read 2.7 Hz (and a 5 s pause 95 Hz): an outside check. A bursty
+    logger's 40-70 ms waits stay in the mean, as before."""
+    from gyrocal.model.still import sample_rate_hz
+
+    t = np.r_[np.arange(5000) / 100.0, 3600.0 + 50.0 + np.arange(5000) / 100.0]
+    assert sample_rate_hz(t, np.zeros(t.size)) == pytest.approx(100.0, rel=1e-6)
+    t5 = np.r_[np.arange(5000) / 100.0, 55.0 + np.arange(5000) / 100.0]
+    assert sample_rate_hz(t5, np.zeros(t5.size)) == pytest.approx(100.0, rel=1e-6)
+    burst = np.cumsum(np.tile([0.002, 0.002, 0.002, 0.002, 0.042], 400))  # 5 samples per 50 ms
+    assert sample_rate_hz(burst, np.zeros(burst.size)) == pytest.approx(100.0, rel=1e-3)
+
+
+def test_a_cause_the_log_cannot_tell_from_another_says_so() -> None:
+    """Where every switch-on warms alike, T, dT/dt and a warm-up have one shape: the finding names
+    the look-alikes that explain as much alone (significant too), and nothing else."""
+    from gyrocal.analysis.causes import AxisResult, Step
+    from gyrocal.analysis.engine import look_alikes
+
+    def axis(first: dict, steps: list[str]) -> AxisResult:
+        return AxisResult(steps=[Step(c, 0.9, 1e-9, 40) for c in steps], first=first)
+
+    first = {"temperature": {"explained_fraction": 0.90, "p_value": 1e-12},
+             "temperature_rate": {"explained_fraction": 0.89, "p_value": 1e-10},
+             "warmup": {"explained_fraction": 0.60, "p_value": 1e-8},  # explains less: not alike
+             "periodic": {"explained_fraction": 0.0, "p_value": 0.5}}
+    weak = {**first, "temperature_rate": {"explained_fraction": 0.89, "p_value": 0.2}}  # not significant
+    got = look_alikes("temperature", ["x", "y"], [axis(first, ["temperature"]), axis(weak, ["temperature"]),
+                                                   axis(first, [])])
+    assert got == {"x": [("temperature_rate", 0.89)]}

@@ -229,13 +229,52 @@ def _findings(prob: Problem, per_axis: list[AxisResult], by_name: dict[str, Cand
             params["lr_dps_per_sqrt_s"] = {a: float(np.sqrt(r.walk.q_hat))
                                            for a, r in zip(AXES, per_axis, strict=True)
                                            if a in axes and r.walk is not None}
+        evidence = _evidence(cause, axes, frac, params, hits[0][1].blocks)
+        alike = {} if cause == "random_walk" else look_alikes(cause, axes, per_axis)
+        if alike:
+            params["confounded_with"] = {a: [c for c, _ in v] for a, v in alike.items()}
+            evidence += " " + _confounded_text(cause, alike)
         out.append({
             "cause": cause, "axes": axes, "explained_fraction": round(frac, 4), "p_value": p,
             "test": WALK_TEST_NAME if cause == "random_walk" else TEST_NAME, "params": params,
-            "evidence": _evidence(cause, axes, frac, params, hits[0][1].blocks),
+            "evidence": evidence,
         })
     out.sort(key=lambda f: -f["explained_fraction"])
     return out
+
+
+CONFOUND_SHARE = 0.8
+"""Another regression cause that, alone against the baseline, is significant and explains at least this
+share of what the named cause explains alone is a look-alike: the log cannot tell the two apart."""
+
+
+def look_alikes(cause: str, axes: list[str],
+                per_axis: list[AxisResult]) -> dict[str, list[tuple[str, float]]]:
+    """Per axis, the other regression causes that explain about as much alone as ``cause`` does
+    (name, share alone). Why: where every switch-on warms the same way, T, dT/dt and exp(-t_on/tau)
+    have one shape; the selection names the most significant, and an outside check on `gyrocal sim`
+    logs found temperature named on x and temperature_rate on z for one temperature effect. The
+    finding says so rather than claim a cause the log cannot single out."""
+    out = {}
+    for a, r in zip(AXES, per_axis, strict=True):
+        own = r.first.get(cause)
+        if a not in axes or own is None or own["explained_fraction"] <= 0:
+            continue
+        chosen = {s.cause for s in r.steps}
+        bar = CONFOUND_SHARE * own["explained_fraction"]
+        alike = [(c, f["explained_fraction"]) for c, f in r.first.items()
+                 if c not in chosen and c not in ("random_walk", "periodic") and f["p_value"] is not None
+                 and f["p_value"] < ALPHA and f["explained_fraction"] >= bar]
+        if alike:
+            out[a] = sorted(alike, key=lambda x: -x[1])
+    return out
+
+
+def _confounded_text(cause: str, alike: dict[str, list[tuple[str, float]]]) -> str:
+    parts = [f"on axis {a}, {', '.join(f'{c} ({f:.0%})' for c, f in v)}" for a, v in alike.items()]
+    return (f"Each alone explains about as much ({'; '.join(parts)}): this log cannot tell them from "
+            f"{cause}, which is named as the most significant. A log with another history of the inputs "
+            "(another temperature course, a warm start) would separate them.")
 
 
 def _evidence(cause: str, axes: list[str], frac: float, params: dict, blocks: int) -> str:

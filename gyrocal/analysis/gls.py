@@ -31,6 +31,8 @@ COLUMN_CHUNK = 8
 SEGMENT_ROWS = 1 << 18
 """Rows of the state system swept at once by ``gram`` (memory: SEGMENT_ROWS x P floats)."""
 _tbtrs = getattr(lapack, "dtbtrs", None)
+DT_FLOOR = 0.1
+"""The shortest interval between samples the state model takes, in sample periods."""
 
 
 class StateSpaceGLS:
@@ -50,7 +52,11 @@ class StateSpaceGLS:
         chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (phi_i, v_i) per sample
         dt = np.diff(t, prepend=t[0])
         start = np.concatenate(([True], session[1:] != session[:-1]))
-        dt = np.where(start, 1.0 / model.rate_hz, np.maximum(dt, 0.0))
+        # a logger that repeats a time stamp (dt 0) would make a state's step variance 0 and its
+        # precision infinite: the band matrix then is not positive definite (a traceback on a valid
+        # log, found by an outside check). Such samples were taken about a period apart; a tenth of
+        # one [s] keeps the states nearly tied and the factorisation sound.
+        dt = np.where(start, 1.0 / model.rate_hz, np.maximum(dt, DT_FLOOR / model.rate_hz))
         for tau, var in model.slow:
             phi = np.exp(-dt / tau)
             v = var * (1 - phi**2)

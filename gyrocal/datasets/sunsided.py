@@ -11,6 +11,13 @@ a steady ~99.3-100 Hz, so the read times scramble everything above about 2 Hz (i
 recording is therefore re-timed to its sample clock: a straight line of t against the sample
 index (``gyrocal.analysis.timestamps``), after sorting by t (the rows are already in order). The
 metadata key ``retimed`` records the clock rate, the share of bursty intervals and the largest lag.
+
+Accelerometer sign: the files hold the gravity vector, not the specific force of Contract 1. The
+recording with x pointing up reads acc_x -0.996 g, and the one with y pointing down acc_y +1.013 g
+(an outside check noticed az -1.03 g on recordings whose README draws z up). The loader negates
+acc_* so that the up axis reads +1 g, as every other reader gives it; the metadata says so. The
+analysis' findings do not change (the fit's gravity terms change sign, and their products do not),
+but a term set fitted on the converted log now holds for a unit that reports specific force.
 """
 
 from __future__ import annotations
@@ -55,5 +62,6 @@ def load_sunsided(path: str | Path | None = None) -> LogData:
             "retimed": ";".join(f"{i}=rate {n['rate_hz']:g} Hz, {n['far_interval_share']:.0%} bursty "
                                 f"intervals, lag <= {n['max_lag_s']:g} s"
                                 for i, (_, n) in enumerate(parts) if n)
-            or "no (time stamps regular)"}
-    return make_log(tab[:, 0], tab[:, 4:7], tab[:, 1:4], str(p), meta, temp=tab[:, 7], session=session)
+            or "no (time stamps regular)",
+            "accel_sign": "negated: the files hold the gravity vector (x up reads -1 g); here +1 g is up"}
+    return make_log(tab[:, 0], tab[:, 4:7], -tab[:, 1:4], str(p), meta, temp=tab[:, 7], session=session)

@@ -17,6 +17,8 @@ from typing import TextIO
 
 import numpy as np
 
+from gyrocal.logformat import CANONICAL_UNITS
+
 LOG_COLUMNS = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session", "ref_wx", "ref_wy", "ref_wz")
 TRUTH_COLUMNS = ("t", "session", "drift_wx", "drift_wy", "drift_wz", "comp_wx", "comp_wy", "comp_wz",
                  "ref_wx", "ref_wy", "ref_wz", "gx", "gy", "gz", "still")
@@ -45,7 +47,9 @@ class Recorder:
     @staticmethod
     def _open(path: Path, metadata: Mapping[str, object] | None, columns: tuple[str, ...]) -> TextIO:
         fh = path.open("w", encoding="utf-8", newline="")
-        for key, value in (metadata or {}).items():
+        # the units line every Contract 1 writer gives (docs/logformat.md), as write_log does
+        meta = {**{k: v for k, v in (metadata or {}).items() if k != "units"}, "units": CANONICAL_UNITS}
+        for key, value in meta.items():
             fh.write(f"# {key}: {value}\n")
         fh.write(",".join(columns) + "\n")
         return fh

@@ -224,8 +224,9 @@ NOISE_FIELDS = ("noise_dps", "random_walk_dps_per_sqrt_s", "bias_instability_dps
 
 
 EFFECT_FIELDS = ("temp_dps_per_c", "temp2_dps_per_c2", "temp_rate_dps_per_cps", "warmup_dps", "warmup_tau_s",
-                 "periodic_dps", "periodic_hz")
-"""The systematic effects ``gyrocal sim --effect NAME=VALUE`` may set (units in their names)."""
+                 "periodic_dps", "periodic_hz", "scale_factor")
+"""The systematic effects ``gyrocal sim --effect NAME=VALUE`` may set (units in their names; scale_factor
+is a fraction of the true rate, e.g. 0.001 for 1000 ppm)."""
 
 
 def set_effects(model: TruthModel, items: list[str] | None) -> TruthModel:
