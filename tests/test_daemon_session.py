@@ -231,3 +231,29 @@ def test_a_daemon_restarted_within_a_switch_on_resumes_it_with_no_bias_stage(tmp
     assert len(said) == 1, said
     assert s.last_push.get("status") == "acked"  # its bias stage
     assert h.store.latest(4242).version > v1.version
+
+
+def test_an_operator_s_rollback_stands_until_the_next_session(tmp_path: Path) -> None:
+    """The daemon pushed a set of its own over an operator's rollback within the same session, and
+    said nothing (an operator's audit). Now it learns on, pushes nothing, and status says why. After
+    a power cycle (a new bias) a warm-started session pushes its bias stage within seconds
+    (test_power_cycle_with_new_bias_...); with the operator's rollback to v1 at its start, it does not."""
+    import numpy as np
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    v1 = h.store.latest(4242)
+    h.switch_on()  # a new bias; the unit keeps v1
+    s = h.session
+    h.run(0.5)
+    assert s.start_push(v1.version, list(v1.terms), np.asarray(v1.coefficients_dps), h.now) is None
+    s.hold_for_operator(v1.version, "a rollback")
+    h.run(60)
+    assert h.store.latest(4242).version == v1.version and h.unit.applied.version == v1.version
+    assert s.last_push["status"] == "acked" and s.last_push["version"] == v1.version
+    assert s.learner.samples > 0 and s.reason.startswith(f"holding the operator's v{v1.version}")
+    assert s.status()["operator_hold"] == s.reason
+    h.switch_on()  # the next session is the daemon's again
+    h.run(60, until=_pushed)
+    assert h.session.operator_hold is None and h.store.latest(4242).version > v1.version

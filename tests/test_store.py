@@ -335,6 +335,25 @@ def test_the_warm_start_is_the_set_the_unit_held_last_not_the_newest(tmp_path: P
     assert CalibrationStore(tmp_path / "none").held_last(5) is None
 
 
+def test_a_failed_rollback_never_erases_that_the_unit_held_the_version(tmp_path: Path) -> None:
+    """A rollback to v1 with the unit unplugged ended 'abandoned' and rewrote v1's 'acked' with no
+    history: a later rollback to v1 was refused and the prune deleted it (an operator's audit)."""
+    store = CalibrationStore(tmp_path)
+    for i in range(2):
+        store.add(make_record(serial=5, seed=i))
+    store.update_push(5, 1, {"status": "acked", "utc": "2026-11-20T10:00:00.000000Z"})
+    store.update_push(5, 2, {"status": "acked", "utc": "2026-11-21T10:00:00.000000Z"})
+    store.update_push(5, 1, {"status": "abandoned", "reasons": ["push cut short: a new session started"],
+                             "utc": "2026-11-22T10:00:00.000000Z", "attempts": 1})
+    for s in (store, CalibrationStore(tmp_path)):
+        rec = s.get(5, 1)
+        assert rec.push["status"] == "acked" and rec.push["utc"] == "2026-11-20T10:00:00.000000Z"
+        assert rec.push["history"][-1]["status"] == "abandoned" and rec.push["attempts"] == 0
+        assert s.held_last(5).version == 2  # the unit still holds v2: the failed push changed nothing
+    store.update_push(5, 1, {"status": "acked", "utc": "2026-11-23T10:00:00.000000Z"})  # it succeeds
+    assert store.held_last(5).version == 1 and store.get(5, 1).push["history"][-1]["status"] == "abandoned"
+
+
 def test_a_full_disk_names_the_file_it_could_not_write(tmp_path: Path) -> None:
     """ENOSPC from write() carries no path ("store unavailable: [Errno 28] No space left on device"
     said nothing of where: an operator's audit); the temporary file is removed."""

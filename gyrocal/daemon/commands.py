@@ -76,6 +76,8 @@ class CommandsMixin:
             return {"ok": False, "error": "the unit restarted without a HELLO and has not said who it is "
                                           "yet; nothing was pushed (check `gyrocal status`)"}
         serial = s.hello.serial
+        if self.link is None or not self.link.connected:  # a rollback as a file: never into a dead link
+            return {"ok": False, "error": "the unit is not connected; nothing was pushed or stored"}
         if req["cmd"] == "rollback":
             target = req.get("to")
             history = [r for r in self.store.history(serial) if r.push.get("status") in APPLIED_STATUSES]
@@ -99,7 +101,8 @@ class CommandsMixin:
             if why is not None:
                 return {"ok": False, "error": f"stored v{rec.version} cannot be pushed: {why}"}
             return self._started(s.start_push(rec.version, list(rec.terms),
-                                              np.asarray(rec.coefficients_dps), now), rec.version)
+                                              np.asarray(rec.coefficients_dps), now), rec.version,
+                                 s, "a rollback")
         terms = req.get("terms")
         if not isinstance(terms, list) or not terms:
             return {"ok": False, "error": "push needs 'terms': a list of term names"}
@@ -107,8 +110,6 @@ class CommandsMixin:
         why = check_set(terms, req.get("coefficients"))
         if why is not None:
             return {"ok": False, "error": why}
-        if self.link is None or not self.link.connected:
-            return {"ok": False, "error": "the unit is not connected; nothing was pushed or stored"}
         coeffs = np.asarray(req["coefficients"], dtype=np.float64)
         try:
             rec = self.store.add(CalibrationRecord(
@@ -119,12 +120,13 @@ class CommandsMixin:
                 min_version=s.version_floor())
         except Exception as err:  # never a unit set the store does not know: refuse the push
             return {"ok": False, "error": f"store unavailable ({err}); nothing was pushed"}
-        return self._started(s.start_push(rec.version, terms, coeffs, now), rec.version)
+        return self._started(s.start_push(rec.version, terms, coeffs, now), rec.version, s, "a file push")
 
     @staticmethod
-    def _started(error: str | None, version: int) -> dict[str, Any]:
+    def _started(error: str | None, version: int, session: Any, what: str) -> dict[str, Any]:
         if error is not None:
             return {"ok": False, "error": f"push of v{version} refused: {error}", "version": version}
+        session.hold_for_operator(version, what)
         return {"ok": True, "message": f"pushing v{version}", "version": version}
 
     def _reload(self) -> None:

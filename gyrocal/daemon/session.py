@@ -238,6 +238,8 @@ class Session(RecoveryMixin):
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
         self._said_converged = False  # the "estimator converged" line of this stretch was logged
         self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
+        # why nothing is pushed on the daemon's own account: an operator pushed a set (hold_for_operator)
+        self.operator_hold: str | None = None
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -616,6 +618,14 @@ class Session(RecoveryMixin):
             self._check_alarm()
             self._check_convergence(now)
 
+    def hold_for_operator(self, version: int, what: str) -> None:
+        """An operator's rollback or file push stands for the rest of this session: the daemon keeps
+        learning but pushes no set of its own over it (it pushed a full set over a rollback 24 s later,
+        with no word why: an operator's audit). A new switch-on or `gyrocal recalibrate` ends it."""
+        self.operator_hold = (f"holding the operator's v{version} ({what}): no set of the daemon's own is "
+                              "pushed until the next switch-on or `gyrocal recalibrate`; learning goes on")
+        log.info("unit %s: %s", self.hello.serial, self.operator_hold)
+
     def _north_found(self) -> None:
         """North is fixed (earth_track.py): from here on the Earth's whole rotation is taken out of
         every sample, and learning starts again, because what was learnt so far held the part along
@@ -651,6 +661,9 @@ class Session(RecoveryMixin):
         monitoring = self.state is State.MONITORING
         if self.unconfirmed is not None:  # learn, but record and push nothing under a guessed serial
             self.reason = self.unconfirmed
+            return
+        if self.operator_hold is not None:  # an operator's set stands until the next session
+            self.reason = self.operator_hold
             return
         if self._bias_stage_due():
             self._push_bias(now)
@@ -1020,6 +1033,7 @@ class Session(RecoveryMixin):
             "last_push": self.last_push,
             "warm_started_from": self.warm_started_from,
             "resumed_from": self.resumed_from,
+            "operator_hold": self.operator_hold,
             "unit_set": self.agreement,
             "faults": {"refused_reports": self.refused_reports, "send_failures": self.send_failures,
                        "coeff_read_asks": self._read_asks,

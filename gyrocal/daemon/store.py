@@ -433,11 +433,23 @@ class CalibrationStore:
 
         Only the keys given change, so a caller may report {"attempts": 2} and later
         {"status": "acked", "acked_crc": 0x1234, "readback_ok": True, "time": ...}.
+
+        A version the unit verifiably held keeps that status whatever a later push of it (a
+        rollback) ends as: the failed attempt goes into ``push.history``. An operator's rollback to
+        v8 with the unit unplugged rewrote v8 'acked' -> 'abandoned', with no history; the next
+        rollback to v8 was then refused, and the prune deleted it (an operator's audit).
         """
         with self._lock:
             rec = self._load(serial).get(version)
             if rec is None:
                 raise KeyError(f"unit {serial} has no readable version {version}")
+            held, status = rec.push.get("status"), push.get("status")
+            if held in APPLIED_STATUSES and status is not None and status not in APPLIED_STATUSES:
+                attempt = {k: push[k] for k in ("status", "reasons", "nak_reason", "utc") if k in push}
+                push = {"history": [*(rec.push.get("history") or []), {**attempt, "of": "a later push"}]}
+                log.warning("calibration store: unit %d version %d: a later push of it ended %s; the record "
+                            "stays %s (the unit held it), the attempt is in push.history", serial, version,
+                            status, held)
             merged = {**rec.push, **push}
             _check_push_status(merged.get("status"))
             if merged.get("status") not in PUSH_STATUSES:
