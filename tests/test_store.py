@@ -382,3 +382,28 @@ def test_a_full_disk_names_the_file_it_could_not_write(tmp_path: Path) -> None:
         atomic_write_json(tmp_path / "v000001.json", {"a": 1})
     assert err.value.errno == errno.ENOSPC and str(tmp_path / "v000001.json") in str(err.value)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_read_only_state_directory_at_start_is_a_fault_not_an_exit(tmp_path: Path, monkeypatch,
+                                                                       caplog) -> None:
+    """docs/operations.md: a read-only state directory never stops the daemon; at start it exited
+    (an operator's audit, with chattr +i). One that cannot be made at all stays a config error, and
+    names the config field as it is spelled (it said daemon.state_dir)."""
+    import logging
+    import os
+
+    from gyrocal.daemon import store as store_mod
+    from gyrocal.errors import ConfigError
+
+    CalibrationStore(tmp_path)  # the directory exists, with its units/
+    real = os.access
+    monkeypatch.setattr(store_mod.os, "access", lambda p, mode: False if mode & os.W_OK else real(p, mode))
+    caplog.set_level(logging.ERROR, logger="gyrocal.daemon.store")
+    s = CalibrationStore(tmp_path)
+    assert s.read_only and "not writable" in s.read_only
+    assert [r.levelno for r in caplog.records] == [logging.ERROR] and "pushes no set" in caplog.text
+    monkeypatch.setattr(store_mod.os, "access", real)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(ConfigError, match=r"point state_dir in the config"):
+        CalibrationStore(blocker / "state")

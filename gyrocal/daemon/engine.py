@@ -54,7 +54,7 @@ from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session, same_boot
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
-from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationStore
+from gyrocal.daemon.store import CalibrationStore
 from gyrocal.drivers import open_link
 from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
 
@@ -527,9 +527,10 @@ class Engine(CommandsMixin):
             recs = self.store.history(serial)
         except Exception as err:
             return {"error": str(err)}
-        applied = [r.version for r in recs if r.push.get("status") in APPLIED_STATUSES]
-        return {"versions": len(recs), "latest_applied": applied[-1] if applied else None,
-                "pending": [r.version for r in recs if r.push.get("status") == "pending"]}
+        held = self.store.held_last(serial)  # after a rollback to v1, v1 (not the highest applied)
+        return {"versions": len(recs), "latest_applied": None if held is None else held.version,
+                "pending": [r.version for r in recs if r.push.get("status") == "pending"],
+                "read_only_at_start": self.store.read_only}
 
     def _publish(self, now: float) -> None:
         link_stats = self.link.stats() if self.link is not None else {}

@@ -245,7 +245,7 @@ class Session(RecoveryMixin):
         self.refused_reports = 0
         self.send_failures = 0
         self._link_warned = False
-        self.store_error: str | None = None
+        self.store_error: str | None = getattr(store, "read_only", None)  # read-only since start
         self._store_retry_at = 0.0
         self.unrecorded: list[tuple[int, dict[str, Any]]] = []  # push results the store could not take
         self.agreement: dict[str, Any] = {}

@@ -242,19 +242,38 @@ class CalibrationStore:
         self._lock = threading.RLock()
         self._cache: dict[int, dict[int, CalibrationRecord]] = {}
         self._max_seen: dict[int, int] = {}  # highest version file name seen, valid or not
+        self.read_only: str | None = None  # why the store cannot be written since start, or None
         self._check_dir()
 
     def _check_dir(self) -> None:
+        """A state directory that cannot be made or read is a configuration error (exit 2, the fix
+        named). One that exists and can be read but not written (a read-only mount, an immutable
+        directory) is a fault like a full disk: the daemon runs and learns, pushes nothing it cannot
+        record, and says so (``read_only``; one ERROR line). It exited at start (an operator's audit),
+        where docs/operations.md promises a read-only state directory never stops it."""
         fix = ("fix: create it writable by the daemon's user (under systemd, StateDirectory=gyrocal does "
-               "this), or point daemon.state_dir in the config at a writable directory")
+               "this), or point state_dir in the config at a writable directory")
         try:
             self.units_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            raise ConfigError(f"calibration store: cannot use state directory {self.state_dir}: "
-                              f"{err.strerror or err}; {fix}") from err
-        if not os.access(self.units_dir, os.R_OK | os.W_OK | os.X_OK):
-            raise ConfigError(f"calibration store: state directory {self.units_dir} is not readable and "
-                              f"writable by uid {os.getuid()}; {fix}")
+            if not (self.units_dir.is_dir() and os.access(self.units_dir, os.R_OK | os.X_OK)):
+                raise ConfigError(f"calibration store: cannot use state directory {self.state_dir}: "
+                                  f"{err.strerror or err}; {fix}") from err
+        if not os.access(self.units_dir, os.R_OK | os.X_OK):
+            raise ConfigError(f"calibration store: state directory {self.units_dir} is not readable by "
+                              f"uid {os.getuid()}; {fix}")
+        why = None if os.access(self.units_dir, os.W_OK) else f"{self.units_dir} is not writable"
+        if why is None:  # root passes access() on an immutable or read-only-mounted directory: try it
+            probe = self.units_dir / f".probe-{os.getpid()}.tmp"
+            try:
+                probe.write_bytes(b"")
+                probe.unlink()
+            except OSError as err:
+                why = f"{self.units_dir} cannot be written ({err.strerror or err})"
+        if why is not None:
+            self.read_only = why
+            log.error("calibration store: %s: the daemon runs and learns, but records and pushes no set "
+                      "until it can be written (status: faults.store); %s", why, fix)
 
     # --- reading -----------------------------------------------------------------------------------
 
