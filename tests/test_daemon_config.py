@@ -227,6 +227,26 @@ def test_a_reload_says_what_waits_for_a_restart_or_a_switch_on(tmp_path: Path, c
     assert eng.cfg.site["latitude_deg"] == 48.1 and eng.last_reload["ok"]
 
 
+def test_a_reload_names_every_field_it_changed_and_when_it_takes_effect(tmp_path: Path, caplog) -> None:
+    """estimator.method, push.retries and store.keep_versions changed with nothing in the log but
+    "configuration reloaded" (an operator's audit)."""
+    path = tmp_path / "c.yaml"
+    path.write_text("link: {url: /dev/x}\n")
+    eng = _reload_only_engine(path)
+    path.write_text("link: {url: /dev/x}\nestimator: {method: kf, convergence: {window: 3000}}\n"
+                    "push: {retries: 5}\nstore: {keep_versions: 3}\nvalidation: {block_s: 0.25}\n")
+    with caplog.at_level("INFO"):
+        eng._reload()
+    said = {r.getMessage().split(":")[1].strip(): r.getMessage() for r in caplog.records
+            if r.getMessage().startswith("SIGHUP: changed")}
+    assert len(said) == 2 and "changed, in effect now" in said
+    now, later = said["changed, in effect now"], said[next(k for k in said if "next" in k)]
+    assert "push.retries 3 -> 5" in now and "store.keep_versions 1000 -> 3" in now and "block_s" not in now
+    assert "estimator.method 'rls' -> 'kf'" in later
+    assert "estimator.convergence.window default -> 3000" in later
+    assert "validation.block_s 0.5 -> 0.25" in later and eng.cfg.push["retries"] == 5
+
+
 def test_the_sighup_reload_takes_new_terms_for_the_next_session(tmp_path: Path, caplog) -> None:
     """Before, a reload replaced the estimator section but not the resolved term list the learner is
     built from, so new terms were silently ignored until a restart."""

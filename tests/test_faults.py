@@ -54,6 +54,26 @@ def test_the_link_failing_mid_push_becomes_a_record_not_an_exception(tmp_path: P
     assert rec is not None and rec.push["status"] == s.last_push["status"]
 
 
+def test_a_push_into_a_link_that_takes_nothing_ends_link_down(tmp_path: Path) -> None:
+    """protocol.md: a push ends 'link_down' when no write could be sent. The session's send reports a
+    dead link by returning False (it logs the outage once), which the push took for a sent write: it
+    waited out every ack and ended 'timeout' (an operator's audit, a rollback with the unit out)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_acked)
+    s = h.session
+    rec = h.store.get(4242, s.last_push["version"])
+
+    def unplugged(msg: Any) -> None:
+        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
+
+    s.send = unplugged
+    assert s.start_push(rec.version, list(rec.terms), np.asarray(rec.coefficients_dps), h.now) is None
+    h.run(30, until=lambda hh: hh.session.push is None)
+    assert s.last_push["status"] == "link_down" and s.push is None
+    assert h.store.get(4242, rec.version).push["status"] == "acked"  # it was held before: it stays
+
+
 def test_a_nan_read_back_is_refused_counted_and_asked_again_and_learning_goes_on(tmp_path: Path) -> None:
     h = Harness.make(tmp_path)
     h.switch_on()

@@ -20,6 +20,8 @@ from gyrocal.daemon.config import load_config
 from gyrocal.daemon.push import check_set
 from gyrocal.daemon.session import State
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
+from gyrocal.errors import ConfigError
+from gyrocal.protocol import termsets
 
 log = logging.getLogger("gyrocal.engine")
 
@@ -107,6 +109,10 @@ class CommandsMixin:
         if not isinstance(terms, list) or not terms:
             return {"ok": False, "error": "push needs 'terms': a list of term names"}
         terms = [str(t) for t in terms]
+        try:  # any set built from the protocol's atoms goes to the unit, which alone knows its table
+            termsets.register_unit_terms(terms)
+        except ConfigError as err:
+            return {"ok": False, "error": f"terms {terms}: {err}"}
         why = check_set(terms, req.get("coefficients"))
         if why is not None:
             return {"ok": False, "error": why}
@@ -153,6 +159,15 @@ class CommandsMixin:
                 if new.site != self.cfg.site:  # a session reads it when it starts
                     log.info("SIGHUP: site.latitude_deg changed to %s; it takes effect at the next "
                              "switch-on (or `gyrocal recalibrate`)", new.site["latitude_deg"])
+                changed = _changed_fields(self.cfg, new, ("validation", "push", "monitor", "store"))
+                now_ = [c for c in changed if c.split(" ")[0] not in AT_SWITCH_ON]
+                if now_:  # read by the session at its next check
+                    log.info("SIGHUP: changed, in effect now: %s", "; ".join(now_))
+                later = [c for c in changed if c.split(" ")[0] in AT_SWITCH_ON]
+                later += _changed_fields(self.cfg, new, ("estimator",), skip=("terms",))
+                if later:  # the learner (method, forgetting, step, convergence) is built at a switch-on
+                    log.info("SIGHUP: changed, in effect at the next switch-on (or `gyrocal recalibrate`): "
+                             "%s", "; ".join(later))
                 for section in ("validation", "push", "monitor", "store", "still", "estimator", "site"):
                     setattr(self.cfg, section, getattr(new, section))
                 if new.terms != self.cfg.terms:  # the learner of a session is built at its switch-on
@@ -161,3 +176,28 @@ class CommandsMixin:
                     self.cfg.terms = new.terms
                 log.info("SIGHUP: configuration reloaded from %s", self.cfg.source)
         self.notifier.ready()
+
+
+AT_SWITCH_ON = frozenset({"validation.block_s", "validation.holdout_every", "monitor.window_s"})
+"""Fields of the at-once sections that a session reads when it starts (its blocks and windows)."""
+
+
+def _changed_fields(old: Any, new: Any, sections: tuple[str, ...], skip: tuple[str, ...] = ()) -> list[str]:
+    """``section.field old -> new`` for each field of ``sections`` a reload changes (one level of
+    nesting spelled out, e.g. estimator.convergence.window), so every change is said in the log."""
+    out = []
+    for sec in sections:
+        a, b = getattr(old, sec) or {}, getattr(new, sec) or {}
+        for key in sorted(set(a) | set(b)):
+            if key in skip or a.get(key) == b.get(key):
+                continue
+            if isinstance(a.get(key), dict) and isinstance(b.get(key), dict):
+                out += [f"{sec}.{key}.{k} {_shown(a[key].get(k))} -> {_shown(b[key].get(k))}"
+                        for k in sorted(set(a[key]) | set(b[key])) if a[key].get(k) != b[key].get(k)]
+            else:
+                out.append(f"{sec}.{key} {_shown(a.get(key))} -> {_shown(b.get(key))}")
+    return out
+
+
+def _shown(v: Any) -> str:
+    return "default" if v is None else repr(v)

@@ -56,6 +56,7 @@ from gyrocal.daemon.session import Session, same_boot
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import CalibrationStore
 from gyrocal.drivers import open_link
+from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
 
 log = logging.getLogger("gyrocal.engine")
@@ -190,6 +191,21 @@ class Engine(CommandsMixin):
             log.error("calibration store: start-up tidy failed: %s", err)
         for serial in self.store.units():
             self._prune_store(serial)
+            self._register_stored_terms(serial)
+
+    def _register_stored_terms(self, serial: int) -> None:
+        """The term sets of a unit's stored versions (an operator's `push --file` of a set beyond the
+        config's): the unit reports by terms id, and a read-back of a set whose names this process
+        does not know is refused, so a restarted daemon would count samples and never learn."""
+        try:
+            recs = self.store.history(serial)
+        except Exception:
+            return
+        for rec in recs:
+            try:
+                termsets.register_unit_terms(rec.terms)
+            except Exception as err:
+                log.debug("unit %d v%d: terms not registered: %s", serial, rec.version, err)
 
     def _prune_store(self, serial: int) -> None:
         """Keep the newest store.keep_versions of a unit (CalibrationStore.prune); never fatal."""

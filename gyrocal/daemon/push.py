@@ -167,7 +167,11 @@ class PushTransaction:
     def _safe_send(self, msg: Any) -> bool:
         """Send; a link failure becomes a recorded reason, never an exception (the engine must live)."""
         try:
-            self._send(msg)
+            # the session's send says False for a link that took nothing (it logs the outage once);
+            # read as success, a dead link's push waited out its acks and ended 'timeout' where
+            # protocol.md says 'link_down' (an operator's audit)
+            if self._send(msg) is False:
+                raise OSError("the link takes no sends")
         except Exception as err:  # LinkError / OSError: the unit is unplugged or the write failed
             self.send_failures += 1
             reason = f"{type(msg).__name__} not sent: {err}"

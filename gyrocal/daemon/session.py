@@ -584,11 +584,14 @@ class Session(RecoveryMixin):
             return
         if self.applied is None:
             if now >= self._read_deadline:
-                if self._read_asks == self.READ_WARN_AFTER:
+                # a link that takes no sends is the link's fault, said once by _send: not the unit's
+                if self._read_asks == self.READ_WARN_AFTER and not self._link_warned:
                     log.warning("unit %s has not answered %d COEFF_READs: counting samples but not learning "
                                 "(learning needs the set the unit applies); asking again, less often",
                                 self.hello.serial, self._read_asks)
-                if self._read_asks >= self.READ_WARN_AFTER and not self.refused_reports:
+                if self._link_warned:
+                    self.reason = "the link takes no sends: the unit's set is read again when it returns"
+                elif self._read_asks >= self.READ_WARN_AFTER and not self.refused_reports:
                     self.reason = (f"the unit does not answer COEFF_READ ({self._read_asks} asks): counting "
                                    "samples, not learning; is it a listen-only replay or a unit without "
                                    "COEFF_READ support?")
