@@ -193,6 +193,17 @@ def _is_number(v: object) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
+def _spans(versions: list[int]) -> str:
+    """Ascending versions as runs: [11, 12, 13, 15] -> 'v11-v13, v15'."""
+    runs: list[list[int]] = []
+    for v in versions:
+        if runs and v == runs[-1][-1] + 1:
+            runs[-1].append(v)
+        else:
+            runs.append([v])
+    return ", ".join(f"v{r[0]}" if len(r) == 1 else f"v{r[0]}-v{r[-1]}" for r in runs)
+
+
 def _fsync_dir(path: Path) -> None:
     """Make a rename or a new entry in ``path`` durable (POSIX needs the directory synced too)."""
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
@@ -522,8 +533,8 @@ class CalibrationStore:
                 gone.append(v)
             if gone:
                 _fsync_dir(udir)
-                which = (f"v{gone[0]}" if len(gone) == 1
-                         else f"{len(gone)} versions, v{gone[0]} to v{gone[-1]}")
+                which = f"v{gone[0]}" if len(gone) == 1 else f"{len(gone)} versions: {_spans(gone)}"
+                # "v11 to v18" read as a range when v17 was kept (an operator's audit): spans, exactly
                 log.info("calibration store: unit %d: removed %s, beyond the newest %d "
                          "(store.keep_versions); the sets the unit held last are kept", serial, which, keep)
             return gone
