@@ -195,3 +195,15 @@ def test_a_cause_the_log_cannot_tell_from_another_says_so() -> None:
     got = look_alikes("temperature", ["x", "y"], [axis(first, ["temperature"]), axis(weak, ["temperature"]),
                                                    axis(first, [])])
     assert got == {"x": [("temperature_rate", 0.89)]}
+
+
+def test_convert_refuses_a_file_with_no_sample_and_names_a_missing_file(tmp_path: Path, capsys) -> None:
+    """It wrote a 0-sample CSV and exited 0, which analyze then refused; a missing path was called
+    an unknown dataset (an outside check)."""
+    junk = tmp_path / "junk.cap"
+    junk.write_bytes(bytes(range(256)) * 40)
+    out = tmp_path / "o.csv"
+    assert main(["convert", str(junk), str(out)]) == 2 and not out.exists()
+    assert "no sample could be read" in capsys.readouterr().err
+    assert main(["convert", str(tmp_path / "none" / "x.csv"), str(out)]) == 2
+    assert "no such file" in capsys.readouterr().err

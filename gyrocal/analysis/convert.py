@@ -54,8 +54,15 @@ def main(args: argparse.Namespace) -> int:
         if log.dropped:
             print(f"{args.dataset}: dropped " + ", ".join(f"{v} {k}" for k, v in log.dropped.items()),
                   file=sys.stderr)
+    elif args.dataset not in LOADERS and ("/" in args.dataset or "." in Path(args.dataset).name):
+        raise ConfigError(f"{args.dataset}: no such file; give a log file that exists, or a shipped dataset "
+                          f"({', '.join(LOADERS)})")
     else:
         log = load_dataset(args.dataset, src)
+    if len(log) == 0:  # analyze refuses such a file: so does convert, rather than write one
+        lost = f" ({', '.join(f'{v} {k}' for k, v in log.dropped.items())})" if log.dropped else ""
+        raise ConfigError(f"{args.dataset}: no sample could be read{lost}; nothing written to {out}. "
+                          "Check --format (or the file's kind) and --columns")
     order = [c for c in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session") if c in log.columns]
     meta = dict(log.metadata)
     if log.dropped:  # the converted log says what its source lost
