@@ -118,8 +118,11 @@ def write_report(directory: str | Path, an: Analysis, result: dict, log_path: st
     lines += [f"{s['total']} samples at {s['rate_hz']:.4g} Hz in {s['sessions']} session(s); "
               f"{s['used']} used in {s['runs']} still runs"
               + (" (reference rates present: all samples used)" if s["with_reference"] else "") + ".",
-              "White noise: " + ", ".join(f"{a} {v:.3g}" for a, v in result["noise_dps"].items()
-                                           if v is not None) + " deg/s per sample.", ""]
+              # noise_dps is the per-sample SD of the fitted error model (white + colour + lines), not
+              # its white part (noise_model.white_dps, 0 where the colour takes it all: mikoff)
+              "Noise: " + ", ".join(f"{a} {v:.3g}" for a, v in result["noise_dps"].items()
+                                    if v is not None) + " deg/s per sample (SD of the fitted error model; "
+              "its white part is noise_model.white_dps in the JSON).", ""]
     lines += ["## Findings", ""]
     if not result["findings"]:
         lines += ["Nothing significant beyond gravity-dependent drift and white noise.", ""]
