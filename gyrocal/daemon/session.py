@@ -237,6 +237,7 @@ class Session(RecoveryMixin):
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
         self._said_converged = False  # the "estimator converged" line of this stretch was logged
+        self._held_has_north = False  # the held set was pushed before north was found (_north_found)
         self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
         # why nothing is pushed on the daemon's own account: an operator pushed a set (hold_for_operator)
         self.operator_hold: str | None = None
@@ -474,6 +475,10 @@ class Session(RecoveryMixin):
         settled = refine.settled(self._trate.value, self._peak_trate)
         edge = settled and self._edge_costs(held_range, cut)
         wide = refine.widened(held_range, self.temp_seen, settled, edge)
+        # a set pushed before north was found holds the Earth's rate along north as drift: like a
+        # widened temperature range, the next set need not cut 1/min_cut of what it changes, only be
+        # no worse on any axis (and pass validation)
+        wide = wide or self._held_has_north
         floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
                                             self.cfg.validation["min_improvement"])
@@ -640,6 +645,7 @@ class Session(RecoveryMixin):
         if not 0.7 <= e.fit_magnitude <= 1.3:
             log.warning("unit %s: the horizontal Earth rate fitted is %.2f x that of site.latitude_deg "
                         "%.4g: check the latitude", self.hello.serial, e.fit_magnitude, e.latitude_deg)
+        self._held_has_north = self.validated_rms is not None  # a set of this session is held
         self.learner = self.learner.fresh()
         self._new_blocks()
         self.monitor.clear()
@@ -957,6 +963,7 @@ class Session(RecoveryMixin):
                 log.warning("unit %s: v%d is held; it takes effect at the unit's next reboot",
                             self.hello.serial, version)
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
+            self._held_has_north = False
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
             self.monitor.clear()
             # the held-out blocks are kept: a refinement is validated over the whole range seen (their
