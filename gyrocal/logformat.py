@@ -200,6 +200,7 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
     if table is None:  # comments, blank lines or a bad value: the slow path names the line and column
         table, skipped = _slow_body(rest, width, header_line, header, name, keep)
     header = [header[i] for i in keep]
+    by_column = _nonfinite_by_column(rest, header_line, skipped, header, width, keep) if skipped else {}
     n_rows = table.shape[0]
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
@@ -216,6 +217,12 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
                   data_rows=n_rows + len(skipped))
     log.warnings.extend(f"{name}: column '{c}' is not numeric (first row: {v!r}); ignored"
                         for c, v in ignored)
+    if by_column:  # a NaN in one column drops the whole row: say which column cost the rows
+        log.warnings.append(
+            f"{name}: {len(skipped)} of {n_rows + len(skipped)} rows dropped for NaN/Inf, by column: "
+            + ", ".join(f"{c} {k}" for c, k in by_column.items())
+            + ("; an optional column (temp, ref_w*, ...) can be left out of the file, or filled"
+               if set(by_column) - set(REQUIRED) else ""))
     warning = looks_like_si(log)
     if warning:
         log.warnings.append(warning)
@@ -291,6 +298,28 @@ def _slow_body(rest: str, width: int, header_line: int, header: list[str], name:
             continue
         rows.append(values)
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(keep)), skipped
+
+
+def _nonfinite_by_column(rest: str, header_line: int, skipped: list[int], header: list[str], width: int,
+                         keep: list[int]) -> dict[str, int]:
+    """How many of the skipped rows (file lines) hold a NaN/Inf in each read column: the rows are few
+    or the file is small, so they are parsed again rather than carried through both body parsers."""
+    want = set(skipped)
+    counts: dict[str, int] = {}
+    for lineno, raw in enumerate(rest.splitlines(), start=header_line + 1):
+        if lineno not in want:
+            continue
+        fields = raw.strip().split(",")
+        if len(fields) != width:
+            continue
+        for h, i in zip(header, keep, strict=True):
+            try:
+                ok = math.isfinite(float(fields[i]))
+            except ValueError:
+                ok = False
+            if not ok:
+                counts[h] = counts.get(h, 0) + 1
+    return counts
 
 
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:
