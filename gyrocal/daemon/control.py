@@ -158,6 +158,8 @@ def prepare_socket_dir(directory: Path) -> None:
             raise ConfigError(f"control socket: cannot create {d}: {err.strerror or err}; fix: make "
                               f"{d.parent} writable by the daemon (systemd: RuntimeDirectory=gyrocal) or "
                               "choose another control_socket path") from err
+    if missing:  # said, so a mistyped control_socket path does not grow directories unnoticed
+        log.info("control socket: created %s (mode 0700)", ", ".join(str(d) for d in missing))
     check_socket_dir(directory, server=True)
 
 
