@@ -216,6 +216,11 @@ class Engine(CommandsMixin):
 
     def close(self) -> None:
         self.notifier.stopping()
+        s = self.session
+        if s is not None and s.push is not None:  # its record stays 'pending' (nothing is lost)
+            log.warning("stopping with the push of v%d under way: its record stays pending; the next "
+                        "start closes it as abandoned, and the unit's read-back says whether it applied it",
+                        s.push.write.version)
         if self.control is not None:
             self.control.stop()
         if self.link is not None:
