@@ -255,3 +255,36 @@ def test_the_boot_detector_after_a_heartbeat_silence() -> None:
     assert not quiet.on_heartbeat(4.1)
     assert not quiet.on_heartbeat(5.1) and not quiet.on_heartbeat(6.1)
     assert quiet.on_heartbeat(7.2)
+
+
+def test_a_daemon_restarted_before_the_px4_reboots_still_knows_the_set_waits_for_it(tmp_path: Path) -> None:
+    """v7 is written to a PX4 whose TC_G_ENABLE was off at boot: it applies nothing until a reboot.
+    A link opened again in the same boot (a daemon restart) read the parameters after those writes,
+    took v7 for applied and stopped correcting the samples; the next set was learnt on that (an
+    autopilot integrator's audit). The parameters at the boot's start are kept per boot."""
+    with sim("px4", tmp_path) as ap:
+        link, col, ring = open_link(ap.address, tmp_path, autopilot="px4")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15) and link.reboot_required is True
+            assert wait_for(lambda: ring.pushed > 500, 15)
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 10)
+            link.send(CoeffWrite(7, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 15) and col.of(CoeffAck)
+            assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0)
+        finally:
+            link.stop()
+        link, col, ring = open_link(ap.address, tmp_path, autopilot="px4")  # the daemon restarted
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert col.of(Hello)[0].boot_count == 1 and link.reboot_required is True
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 10)
+            rep = col.of(CoeffReport)[0]
+            assert rep.version == 7
+            ring.pop()
+            assert wait_for(lambda: ring.pushed > ring.popped + 750, 15)
+            err = reconstruction_error_dps(ring, rep, "px4", 1)  # samples as if v7 were applied
+            assert np.all(np.abs(err) < 0.02), err
+        finally:
+            link.stop()

@@ -406,6 +406,9 @@ class Session(RecoveryMixin):
         if t_unit >= sb["time_s"]:
             self.resumed_from = int(sb["version"])
             self._bias_pushed = sb["stage"] != "bias"
+            if self.caps.reboot_required:  # acked in this boot by a unit that applies sets at its reboot
+                self.reboot_needed = {"version": self.resumed_from, "why": f"the unit ({self.caps.kind}) "
+                                      "applies a pushed set only after its next reboot"}
             v = sb["version"]
             kind = "a full set" if sb["stage"] == "full" else "an operator's set"
             then = (f"v{v} is {kind}: no bias stage, learning on for a full set"

@@ -429,6 +429,13 @@ class MavlinkLink(UnitRequests, Link):
         )
         boot_wall = time.time() - float(self._t_last or 0.0)
         boots = self.state.note_boot(self.serial, boot_wall, known_new=self._known_new)
+        # the parameters as they were when this boot began decide what the autopilot applies (a PX4
+        # with TC_G_ENABLE off at boot applies nothing until its reboot). A daemon restarted in the
+        # same boot read them after its own writes: the PX4 then looked as if it applied v1, the link
+        # stopped correcting the samples, and the next set was learnt on that (an autopilot
+        # integrator's audit: 1252 deg/h left after the reboot). So they are kept per boot.
+        self._boot_params = self.state.boot_params(self.serial, boots, self._boot_params or {})
+        self._adj = None
         self._hello = Hello(
             self.serial, imu_mod.fw_text(v.flight_sw_version), boots, int(round(self.rate_hz))
         )

@@ -60,6 +60,19 @@ class LinkState:
         self.save()
         return int(u["boot_count"])
 
+    def boot_params(self, serial: int, boot_count: int, read_now: dict[str, float]) -> dict[str, float]:
+        """The compensation parameters as they were at the start of boot ``boot_count``: those kept for
+        it if this boot was seen before (a daemon restarted within it, after its own writes), else
+        ``read_now``, which are then kept for it."""
+        u = self.unit(serial)
+        kept = u.get("boot_params")
+        if isinstance(kept, dict) and u.get("boot_params_boot") == boot_count:
+            return {str(k): float(v) for k, v in kept.items()}
+        u["boot_params"] = {str(k): float(v) for k, v in read_now.items()}
+        u["boot_params_boot"] = int(boot_count)
+        self.save()
+        return dict(read_now)
+
     def widen(self, serial: int, lo: float, hi: float) -> tuple[float, float]:
         """Merge [lo, hi] degC into the unit's seen range and return the union."""
         u = self.unit(serial)
