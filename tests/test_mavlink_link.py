@@ -288,3 +288,17 @@ def test_a_daemon_restarted_before_the_px4_reboots_still_knows_the_set_waits_for
             assert np.all(np.abs(err) < 0.02), err
         finally:
             link.stop()
+
+
+def test_a_fault_of_the_last_boot_is_judged_again_at_a_new_boot(tmp_path: Path) -> None:
+    """The autopilot vanished mid-push: the restore's read failed ('no PARAM_VALUE'), and that fault
+    outlived the autopilot's return, so the link never said HELLO again and the daemon sat in
+    UNIT_SILENT until restarted (an integrator's audit). A new boot clears it; this boot's reads and
+    heartbeats set again whatever still holds."""
+    col = Collector()
+    link = MavlinkLink("udpin:127.0.0.1:1", RingBuffer(1 << 10), col.control, col.event,
+                       state_file=str(tmp_path / "mav.json"), autopilot="px4")
+    link._set_fault("cannot read px4 compensation parameters: no PARAM_VALUE after 4 read request(s)")
+    assert link.fault is not None and not link._ready()
+    link._new_boot([], "heartbeat returned after silence")
+    assert link.fault is None and link._known_new

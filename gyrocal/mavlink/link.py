@@ -243,6 +243,14 @@ class MavlinkLink(UnitRequests, Link):
         keep_target, keep_profile = self.target_system, self.profile
         self._reset_boot()
         self.target_system, self.profile = keep_target, keep_profile
+        if self.fault is not None:
+            # a fault of the last boot (a read cut off when the autopilot vanished mid-push) is judged
+            # again on this boot's reads: kept, the link never said HELLO again and the daemon sat in
+            # UNIT_SILENT until restarted (an integrator's audit). A wrong autopilot type is set
+            # again by the next heartbeat, a parameter problem by the next read.
+            log.info("mavlink %s: the last boot's fault (%s) is checked again on this boot", self.url,
+                     self.fault)
+            self.fault = self._config_fault = None
         self._known_new = True
         self._extra["boots_seen"] += 1
 
