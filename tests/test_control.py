@@ -521,3 +521,28 @@ def test_an_operator_command_is_one_log_line_with_who_and_how_it_ended(tmp_path:
     assert len(lines) == 1 and lines[0].levelno == logging.WARNING
     assert lines[0].getMessage() == ("operator command rollback --to 3 from uid 1000 pid 42: refused: "
                                      "no unit session yet; wait for the unit's HELLO")
+
+
+def test_a_file_push_of_a_set_the_unit_cannot_hold_stores_nothing(tmp_path: Path) -> None:
+    """operations.md: a push is checked before anything is stored. On an autopilot (it holds its
+    cubic in temperature only), ["1", "gx"] was stored as a 'refused' version first (an integrator's
+    audit)."""
+    from gyrocal.daemon.capabilities import UnitCapabilities
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.engine import Engine
+    from gyrocal.daemon.learner import make_learner
+    from gyrocal.daemon.session import Session
+    from gyrocal.protocol.messages import Hello
+
+    eng = Engine(load_config(None, {"state_dir": str(tmp_path), "control_socket": str(tmp_path / "c")}))
+    caps = UnitCapabilities("px4", (("1", "temp", "temp^2", "temp^3"),), 4, reboot_required=True)
+    eng.session = Session(eng.cfg, Hello(77, "1.0", 1, 250), make_learner(eng.cfg, None, 250.0), eng.store,
+                          lambda msg: None, 0.0, 250.0, caps=caps)
+
+    class Up:
+        connected = True
+
+    eng.link = Up()
+    reply = eng._command({"cmd": "push", "terms": ["1", "gx"], "coefficients": [[0.01, 0.0]] * 3}, 0.0)
+    assert not reply["ok"] and "cannot hold" in reply["error"] and "nothing was stored" in reply["error"]
+    assert eng.store.history(77) == []

@@ -114,6 +114,8 @@ class CommandsMixin:
         except ConfigError as err:
             return {"ok": False, "error": f"terms {terms}: {err}"}
         why = check_set(terms, req.get("coefficients"))
+        if why is None and not s.caps.holds(terms):  # checked before anything is stored (operations.md)
+            why = f"the unit ({s.caps.kind}) cannot hold the terms {terms}; nothing was stored"
         if why is not None:
             return {"ok": False, "error": why}
         coeffs = np.asarray(req["coefficients"], dtype=np.float64)
