@@ -196,11 +196,12 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
         width = len(header)
         rest = fh.read()
     keep, ignored = _numeric_columns(rest, header)
-    table, skipped = _fast_body(rest, width, header_line, keep)
+    bad_counts = np.zeros(len(keep), dtype=np.int64)  # NaN/Inf per column in the rows dropped
+    table, skipped = _fast_body(rest, width, header_line, keep, bad_counts)
     if table is None:  # comments, blank lines or a bad value: the slow path names the line and column
-        table, skipped = _slow_body(rest, width, header_line, header, name, keep)
+        table, skipped = _slow_body(rest, width, header_line, header, name, keep, bad_counts)
     header = [header[i] for i in keep]
-    by_column = _nonfinite_by_column(rest, header_line, skipped, header, width, keep) if skipped else {}
+    by_column = {h: int(k) for h, k in zip(header, bad_counts, strict=True) if k}
     n_rows = table.shape[0]
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
@@ -253,9 +254,10 @@ def _numeric_columns(rest: str, header: list[str]) -> tuple[list[int], list[tupl
     return [i for i, h in enumerate(header) if h not in skip], ignored
 
 
-def _fast_body(rest: str, width: int, header_line: int,
-               keep: list[int]) -> tuple[np.ndarray | None, list[int]]:
-    """numpy's C parser for a body of plain numeric rows (~10x the line-by-line loop), else None."""
+def _fast_body(rest: str, width: int, header_line: int, keep: list[int],
+               bad_counts: np.ndarray | None = None) -> tuple[np.ndarray | None, list[int]]:
+    """numpy's C parser for a body of plain numeric rows (~10x the line-by-line loop), else None.
+    ``bad_counts`` (len(keep),): incremented per column by the NaN/Inf values of the rows dropped."""
     body = rest.strip("\n")
     if not body:
         return np.zeros((0, len(keep))), []
@@ -274,12 +276,14 @@ def _fast_body(rest: str, width: int, header_line: int,
     bad = ~np.isfinite(table).all(axis=1)
     if not bad.any():
         return table, []
+    if bad_counts is not None:
+        bad_counts += (~np.isfinite(table[bad])).sum(axis=0)
     first = header_line + 1 + (len(rest) - len(rest.lstrip("\n")))  # the file line of the first row
     return table[~bad], [int(first + i) for i in np.flatnonzero(bad)]
 
 
 def _slow_body(rest: str, width: int, header_line: int, header: list[str], name: str,
-               keep: list[int]) -> tuple[np.ndarray, list[int]]:
+               keep: list[int], bad_counts: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
     rows: list[list[float]] = []
     skipped: list[int] = []
     for lineno, raw in enumerate(rest.splitlines(), start=header_line + 1):
@@ -295,31 +299,11 @@ def _slow_body(rest: str, width: int, header_line: int, header: list[str], name:
         values = [_parse_float(fields[i], name, lineno, header[i]) for i in keep]
         if not all(math.isfinite(v) for v in values):
             skipped.append(lineno)
+            if bad_counts is not None:
+                bad_counts += ~np.isfinite(values)
             continue
         rows.append(values)
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(keep)), skipped
-
-
-def _nonfinite_by_column(rest: str, header_line: int, skipped: list[int], header: list[str], width: int,
-                         keep: list[int]) -> dict[str, int]:
-    """How many of the skipped rows (file lines) hold a NaN/Inf in each read column: the rows are few
-    or the file is small, so they are parsed again rather than carried through both body parsers."""
-    want = set(skipped)
-    counts: dict[str, int] = {}
-    for lineno, raw in enumerate(rest.splitlines(), start=header_line + 1):
-        if lineno not in want:
-            continue
-        fields = raw.strip().split(",")
-        if len(fields) != width:
-            continue
-        for h, i in zip(header, keep, strict=True):
-            try:
-                ok = math.isfinite(float(fields[i]))
-            except ValueError:
-                ok = False
-            if not ok:
-                counts[h] = counts.get(h, 0) + 1
-    return counts
 
 
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:

@@ -95,17 +95,9 @@ def _summary(out: dict) -> None:
     for f in out["findings"]:
         head = f"{f['cause']}: axes {','.join(f['axes'])}"
         if f.get("p_value") is None:  # a noise cause (coloured_noise, bias_instability): valued by fidelity
-            gain = (f.get("params") or {}).get("fidelity_gain_decades")
-            print(head + ("" if gain is None else f", fidelity gain {_decades(gain)} decades"))
+            gain = (f.get("params") or {}).get("fidelity_gain_decades") or {}  # per axis (noisecauses.py)
+            print(head + (f", fidelity gain {max(gain.values()):.2f} decades" if gain else ""))
         else:
             print(f"{head}, explains {f.get('explained_fraction') or 0.0:.1%} (p={f['p_value']:.2g})")
     g = out["gain"]
     print(f"gain (tau_s={out['tau_s']:g}): " + ", ".join(f"{a}={g[a]:.2f}" for a in g if g[a] is not None))
-
-
-def _decades(gain: object) -> str:
-    """A fidelity gain [decades] for the summary line: one figure, or the largest of per-axis ones."""
-    if isinstance(gain, dict):
-        vals = [float(v) for v in gain.values() if isinstance(v, int | float)]
-        return f"{max(vals):.2f}" if vals else "?"
-    return f"{float(gain):.2f}" if isinstance(gain, int | float) else "?"
