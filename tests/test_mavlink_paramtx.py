@@ -136,6 +136,40 @@ def test_a_reboot_mid_push_aborts_with_a_clear_reason() -> None:
     assert srv.p["INS_TCAL1_ENABLE"] == 0.0 and not srv.partial_while_enabled
 
 
+def test_the_boot_gate_holds_each_request_until_the_clock_is_seen_and_the_ack_too() -> None:
+    """A request (first or resent) leaves only when the gate says the autopilot's clock ran on since
+    its last answer; a whole set read back is acked only after that too. A gate shut for longer than
+    hold_max_s ends the push BUSY with the reason, never acked (an autopilot that rebooted in the
+    last exchange took the rest of a PX4 set into a boot that applies none of it)."""
+    profile = Px4(0)
+    srv = Server(profile, {"CAL_GYRO0_ID": 42.0, "TC_G_ENABLE": 1.0})
+    open_ = {"v": True}
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0, gate=lambda now: open_["v"], hold_max_s=5.0)
+    srv.pump(push, limit=len(profile.all_params()) + 3)  # context read, DISABLE, two writes
+    open_["v"] = False
+    srv.pump(push)  # the answer to the request in flight: nothing more leaves
+    assert not srv.inbox and push.phase.value == "write"
+    push.tick(3.0)  # the request's timeout passes while held: nothing is resent either
+    assert not srv.inbox and not push.finished
+    open_["v"] = True
+    push.tick(3.1)
+    assert srv.inbox  # the held request goes
+    srv.pump(push)
+    assert push.finished and push.outcome.ok
+    # everything written and read back, the clock not seen after the last answer: the ack waits
+    srv2 = Server(profile, {"CAL_GYRO0_ID": 42.0, "TC_G_ENABLE": 1.0})
+    ref: dict[str, ParamPush] = {}
+    late = ref["p"] = ParamPush(profile, Q, 20.0, 50.0, srv2.send, 0.0,
+                                gate=lambda now: "p" not in ref or ref["p"].phase.value != "confirm")
+    srv2.pump(late)
+    assert not late.finished and late.phase.value == "confirm" and all(
+        srv2.p[k] == v for k, v in late.target.items()
+    )
+    late.tick(6.0)
+    assert late.finished and not late.outcome.ok and late.outcome.nak == NakReason.BUSY
+    assert "cannot be told" in late.outcome.reason
+
+
 def test_an_unknown_parameter_fails_with_a_clear_error() -> None:
     profile = ArduPilot(0)
     srv = Server(profile, {})

@@ -60,6 +60,9 @@ CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE = 511, 512
 TEMP_RATE_HZ = 10.0
 STREAM_STALL_S = 1.0
 """IMU silence [s] with heartbeats present after which the stream is requested again."""
+FRESH_S = 0.25
+"""[s] A push sends its next parameter request only after an IMU sample newer than the last answer
+and younger than this (at least 5 sample periods): the autopilot's clock seen running."""
 
 
 class MavlinkLink(UnitRequests, Link):
@@ -229,6 +232,8 @@ class MavlinkLink(UnitRequests, Link):
         self._temp_c: float | None = None
         self._t_last: float | None = None
         self._imu_rx: float | None = None  # monotonic time of the last IMU message
+        self._imu_n = 0  # IMU messages of this boot
+        self._echo_n = 0  # _imu_n at the push's last PARAM_VALUE
         self._asked_again: float = 0.0
         self._seq = 0
         self._known_new = False
@@ -269,6 +274,8 @@ class MavlinkLink(UnitRequests, Link):
             name = m.param_id if isinstance(m.param_id, str) else m.param_id.decode("ascii", "replace")
             name = name.rstrip("\x00")
             job = self._push or self._reader
+            if self._push is not None:
+                self._echo_n = self._imu_n
             if job is not None:
                 job.on_value(name, float(m.param_value), int(m.param_type), now)
         elif kind == "AUTOPILOT_VERSION":
@@ -363,6 +370,10 @@ class MavlinkLink(UnitRequests, Link):
             self._ask_identity_and_stream(now)
         self._t_last = r.t_s
         self._imu_rx = now
+        self._imu_n += 1
+        if self._push is not None:
+            self._push.tick(now)  # a request the boot gate holds goes now
+            self._finish_push(out)
         if kind == temp_msg and r.temp_c is not None:
             self._temp_c = r.temp_c
         if self._source is None and kind == "HIGHRES_IMU":
@@ -420,6 +431,19 @@ class MavlinkLink(UnitRequests, Link):
                 self._after_read(out)
         if self._hello is None and self._ready():
             self._say_hello(out)
+
+    def _clock_seen(self, now: float) -> bool:
+        """The push's boot gate: an IMU sample arrived after the autopilot's last answer, recently,
+        and its time stamp did not go back (``_on_imu`` turns one that did into a new boot first).
+
+        Why: a reboot mid-push is silent for about as long as one request's timeout, and the resent
+        request lands in the new boot. Without the gate a PX4 took the rest of the set there, the
+        read-back matched, and the push was acked as stored; but that boot had begun with TC_G_ENABLE
+        = 0 (written first), so it applied nothing, and the daemon believed it (an integrator's audit,
+        ``--reboot-after-sets 5``). The restarted stream's first time stamp tells the boot.
+        """
+        fresh = max(FRESH_S, 5.0 / self.rate_hz)
+        return self._imu_rx is not None and self._imu_n > self._echo_n and now - self._imu_rx < fresh
 
     def _ready(self) -> bool:
         return (

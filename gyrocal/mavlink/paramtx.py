@@ -68,17 +68,25 @@ class OpRunner:
     an echo with another value is a rejection (the autopilot clamped or refused it) and stops the
     run. Silence for ``timeout_s`` resends the same request (PARAM_SET is idempotent), at most
     ``retries`` times in all.
+
+    ``gate(now)``, when given, must say True before a request leaves (the first or a resend): the
+    link's proof that the autopilot's clock ran on since its last answer. A request held longer than
+    ``hold_max_s`` ends the run with an error, since nothing then tells whether it rebooted.
     """
 
     def __init__(
-        self, profile: Profile, send: Callable[[object], None], timeout_s: float, retries: int
+        self, profile: Profile, send: Callable[[object], None], timeout_s: float, retries: int,
+        gate: Callable[[float], bool] | None = None, hold_max_s: float = 5.0,
     ) -> None:
         self.profile, self.send = profile, send
+        self.gate, self.hold_max_s = gate, hold_max_s
+        self._held: tuple[bool, float] | None = None  # a request the gate holds: (first, since)
         self.types = profile.types()  # grows with extra_context() parameters as they are asked for
         self.timeout_s, self.retries = timeout_s, retries
         self.values: dict[str, float] = {}
         self.error: str | None = None
         self.rejected = False
+        self.held_out = False  # the error is the gate's: no IMU sample, not a missing parameter
         self.resends = 0
         self._ops: list[_Op] = []
         self._tries = 0
@@ -89,7 +97,8 @@ class OpRunner:
         return not self._ops or self.error is not None
 
     def start(self, ops: list[_Op], now: float) -> None:
-        self._ops, self.error, self.rejected = list(ops), None, False
+        self._ops, self.error, self.rejected, self.held_out = list(ops), None, False, False
+        self._held = None
         self._issue(now, first=True)
 
     def read_extra(self, now: float) -> bool:
@@ -106,6 +115,13 @@ class OpRunner:
     def _issue(self, now: float, first: bool) -> None:
         if not self._ops:
             return
+        if self.gate is not None and not self.gate(now):
+            # an autopilot that rebooted while a request was on its way must not get the next one
+            # (a PX4 took the rest of a set into its new boot, acked, and applied none of it)
+            if self._held is None:
+                self._held = (first, now)
+            return
+        self._held = None
         op = self._ops[0]
         self._tries = 1 if first else self._tries + 1
         self._deadline = now + self.timeout_s
@@ -130,7 +146,20 @@ class OpRunner:
         self._issue(now, first=True)
 
     def tick(self, now: float) -> None:
-        if self.done or now < self._deadline:
+        if self.done:
+            return
+        if self._held is not None:
+            first, since = self._held
+            if self.gate is not None and self.gate(now):
+                self._issue(now, first)
+            elif now - since > self.hold_max_s:
+                self.held_out = True
+                self.error = (
+                    f"{self._ops[0].name}: no IMU sample for {now - since:.1f} s while the autopilot "
+                    "answers parameters, so whether it rebooted cannot be told"
+                )
+            return
+        if now < self._deadline:
             return
         if self._tries >= self.retries:
             op = self._ops[0]
@@ -152,6 +181,7 @@ class Phase(enum.Enum):
     VERIFY = "verify"
     ENABLE = "enable"
     READ_BACK = "read_back"
+    CONFIRM = "confirm"
     RESTORE = "restore"
     RESTORE_ENABLE = "restore_enable"
     DONE = "done"
@@ -184,11 +214,15 @@ class ParamPush:
         *,
         timeout_s: float = 0.5,
         retries: int = 4,
+        gate: Callable[[float], bool] | None = None,
+        hold_max_s: float = 5.0,
     ) -> None:
         self.profile = profile
         self.q = np.asarray(q_dps, dtype=np.float64)
         self.tmin, self.tmax = float(tmin), float(tmax)
-        self.io = OpRunner(profile, send, timeout_s, retries)
+        self.gate = gate
+        self.io = OpRunner(profile, send, timeout_s, retries, gate, hold_max_s)
+        self._confirm_since = 0.0
         self.phase = Phase.READ_CONTEXT
         self.outcome: PushOutcome | None = None
         self.before: dict[str, float] = {}
@@ -213,8 +247,25 @@ class ParamPush:
     def tick(self, now: float) -> None:
         if self.finished:
             return
+        if self.phase is Phase.CONFIRM:
+            return self._confirm(now)
         self.io.tick(now)
         self._advance(now)
+
+    def _confirm(self, now: float) -> None:
+        """The set reads back whole: acked once the autopilot's clock is seen running after it (the
+        gate), so a reboot in the last exchanges is never acked as the set applied."""
+        if self.gate is None or self.gate(now):
+            self.phase = Phase.DONE
+            self.outcome = PushOutcome(True, "", 0, dict(self.io.values), self.target)
+        elif now - self._confirm_since > self.io.hold_max_s:
+            self.phase = Phase.FAILED
+            self.outcome = PushOutcome(
+                False,
+                f"no IMU sample for {now - self._confirm_since:.1f} s after the final read-back, so "
+                "whether the autopilot rebooted during the push cannot be told",
+                int(NakReason.BUSY), dict(self.io.values), self.target,
+            )
 
     def abort(self, reason: str) -> None:
         """The autopilot rebooted or the link went down: nothing more can be confirmed."""
@@ -249,7 +300,8 @@ class ParamPush:
                 return
         if self.phase is Phase.READ_CONTEXT:
             if err:
-                return self._finish(False, err, NakReason.UNKNOWN_TERMS)
+                nak = NakReason.BUSY if self.io.held_out else NakReason.UNKNOWN_TERMS
+                return self._finish(False, err, nak)
             self.before = dict(self.io.values)
             why = p.problem(self.before) or p.check_range(self.q, self.tmin, self.tmax)
             if why:
@@ -312,7 +364,10 @@ class ParamPush:
             ok = p.is_enabled(self.io.values) and all(
                 self.io.values.get(k) == v for k, v in self.target.items()
             )
-            self._finish(ok, "" if ok else "the final read-back differs from the set written", NakReason.BUSY)
+            if ok:
+                self.phase, self._confirm_since = Phase.CONFIRM, now
+                return self._confirm(now)
+            self._finish(False, "the final read-back differs from the set written", NakReason.BUSY)
         elif self.phase is Phase.RESTORE:
             self._restored = err is None
             if err is None and self.before.get(p.enable.name) == 1.0:
@@ -332,6 +387,8 @@ class ParamPush:
 
     def _go(self, phase: Phase, ops: list[_Op], now: float) -> None:
         self.phase = phase
+        if phase in (Phase.RESTORE, Phase.RESTORE_ENABLE):
+            self.io.gate = None  # putting the old set back is right on whichever boot hears it
         self.io.start(ops, now)
         if not ops:
             self._advance(now)

@@ -84,6 +84,7 @@ class UnitRequests:
             now,  # type: ignore[arg-type]
             timeout_s=self.param_timeout_s,
             retries=self.param_retries,
+            gate=self._clock_seen,
         )
 
     def _refuse(self: MavlinkLink, msg: CoeffWrite) -> tuple[str, NakReason]:
