@@ -104,8 +104,14 @@ def test_the_daemon_calibrates_a_board_mounted_rotated(tmp_path: Path) -> None:
     subtracts in the sensor frame and rotates its output by its own transcription of ArduPilot's
     Vector3::rotate; the truth is rotated the same way (autopilot_truth), so an unrotated or wrongly
     rotated push would leave the error, not cut it."""
-    params, st = run_daemon_until_acked(tmp_path, "--rotation", "10")
+    params, st = run_daemon_until_acked(tmp_path, "--rotation", "10", "--drop-param-values", "3")
     assert params["AHRS_ORIENTATION"] == 10
+    # three lost echoes make the push outlast the protocol's 1 s ack timeout: the daemon waits the
+    # autopilot's ack_within_s instead of resending into a running push (each resend was NAKed BUSY,
+    # and the record said nak for a set the autopilot then held: an integrator's audit)
+    log = (tmp_path / "run.log").read_text()
+    assert st["last_push"]["attempts"] == 1 and "a push is already running" not in log, log[-3000:]
+    assert st["unit_caps"]["ack_within_s"] == 8.0
     assert st["last_push"]["board_rotation"] == {"AHRS_ORIENTATION": 10.0}  # in the store record too
     assert params["INS_TCAL1_TMAX"] - params["INS_TCAL1_TMIN"] > 5.0
     temps = np.linspace(params["INS_TCAL1_TMIN"], params["INS_TCAL1_TMAX"], 5)

@@ -232,6 +232,24 @@ def test_a_px4_reboot_mid_push_is_never_acked_as_applied(tmp_path: Path) -> None
             link.stop()
 
 
+def test_a_write_resent_while_its_push_runs_gets_that_push_s_answer_not_busy(tmp_path: Path) -> None:
+    """Lost echoes stretch a push past the host's ack timeout; the host resends the same write. Each
+    write gets one answer (protocol.md), the running push's own: two ACKs, no BUSY."""
+    with sim("px4", tmp_path, "--drop-param-values", "3") as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", param_timeout_s=0.5)
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            assert link.capabilities.ack_within_s == 4 * 0.5 * 4
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+            assert not wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 1.0)  # still running
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: len(col.of(CoeffAck)) == 2, 20)
+            assert not col.of(CoeffNak)
+        finally:
+            link.stop()
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

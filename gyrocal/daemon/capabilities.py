@@ -46,6 +46,10 @@ class UnitCapabilities:
     board_rotation: dict[str, float] | None = None
     """The unit's board rotation parameters when it holds its set in a frame turned from the samples'
     (an autopilot: sensor vs body frame, docs/mavlink.md "Board rotation"); recorded with each push."""
+    ack_within_s: float | None = None
+    """[s] How long this unit may take to answer a COEFF_WRITE when that is longer than our protocol's
+    (an autopilot writes a set one parameter at a time, each lost echo costing a timeout); the daemon
+    waits max(push.ack_timeout_s, this) per attempt. None: the protocol's unit, push.ack_timeout_s."""
 
     def holds(self, names: list[str] | tuple[str, ...]) -> bool:
         if len(names) > self.max_terms:
@@ -67,6 +71,8 @@ class UnitCapabilities:
                "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
         if self.board_rotation is not None:
             out["board_rotation"] = dict(self.board_rotation)
+        if self.ack_within_s is not None:
+            out["ack_within_s"] = self.ack_within_s
         return out
 
 

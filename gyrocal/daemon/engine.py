@@ -576,6 +576,11 @@ class Engine(CommandsMixin):
             if not status.get("trained_samples") and status["still"].get("why"):
                 status["reason"] = f"{status['reason']}; {status['still']['why']}"  # why nothing is learnt
         silent = connected and age is not None and age > SILENT_AFTER_S
+        if silent and getattr(self.link, "holds_samples_in_push", False) and self.session is not None \
+                and self.session.push is not None and not self.session.push.finished:
+            # an autopilot's link withholds the samples while it rewrites the compensation (they would
+            # mix two sets); it hears the autopilot, and a silent one fails the push (heartbeat lost)
+            silent = False
         if not connected or (age is None and self.session is None and not link_stats.get("frames")):
             status["session_state"] = status["state"]
             status["state"] = "WAIT_UNIT"

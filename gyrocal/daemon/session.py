@@ -932,8 +932,9 @@ class Session(RecoveryMixin):
         self._retry, self._retry_round = None, retry_round  # this push supersedes a pending retry
         self.state = State.PUSHING
         self.reason = f"pushing v{version}"
-        self.push = PushTransaction(write, self._send, now, self.cfg.push["ack_timeout_s"],
-                                    self.cfg.push["retries"])
+        # an autopilot answers a push later than our protocol's unit (capabilities.ack_within_s)
+        ack_s = max(self.cfg.push["ack_timeout_s"], self.caps.ack_within_s or 0.0)
+        self.push = PushTransaction(write, self._send, now, ack_s, self.cfg.push["retries"])
         return None
 
     def _after_push(self, now: float) -> None:

@@ -74,6 +74,9 @@ class MavlinkLink(UnitRequests, Link):
     """
 
     kind = "mavlink"
+    holds_samples_in_push = True
+    """Samples are withheld while a push rewrites the compensation (``push_gap_samples``): the engine
+    does not call the autopilot silent for that gap."""
 
     def __init__(
         self,
@@ -124,7 +127,19 @@ class MavlinkLink(UnitRequests, Link):
         name = self.profile.name if self.profile is not None else "autopilot"
         return UnitCapabilities(f"mavlink {name}", tuple(self.term_sets.values()), len(TEMP_POLY3_TERMS),
                                 self.reboot_required, clamps_temperature=True,
-                                board_rotation=self.board_rotation)
+                                board_rotation=self.board_rotation, ack_within_s=self.ack_within_s)
+
+    @property
+    def ack_within_s(self) -> float:
+        """[s] The answer time the daemon should allow a push: room for a few lost echoes per phase
+        (each costs ``param_timeout_s``), 4 x param_timeout_s x param_retries, 8 s by default.
+
+        The 1 s of push.ack_timeout_s is our protocol unit's; a push with two lost echoes took longer,
+        and the daemon's resends were NAKed BUSY ("a push is already running") while the push went on
+        and was acked, so the record said nak for a set the autopilot held (an integrator's audit). A
+        resend of the running push's write is now answered when the push ends, and this gives the
+        daemon the time to wait for it."""
+        return 4.0 * self.param_timeout_s * self.param_retries
 
     @property
     def board_rotation(self) -> dict[str, float] | None:
@@ -226,6 +241,7 @@ class MavlinkLink(UnitRequests, Link):
         self._reader: ParamReadAll | None = None
         self._push: ParamPush | None = None
         self._push_write: CoeffWrite | None = None
+        self._push_repeats = 0  # resends of the running push's write: each gets the push's answer
         self._report_wanted = False
         self._source: str | None = None
         self._stream_asked_at: float | None = None

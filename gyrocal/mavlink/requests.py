@@ -65,6 +65,20 @@ class UnitRequests:
 
     def _start_push(self: MavlinkLink, msg: CoeffWrite, now: float, out: list[Any]) -> None:
         crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
+        running = self._push_write
+        if (
+            self._push is not None
+            and running is not None
+            and running.version == msg.version
+            and coeff_set_crc(running.version, running.terms_id, running.coeffs_dps) == crc
+        ):
+            # the host resent the write it is waiting for: answered with the running push's outcome
+            # (one answer per write, protocol.md), never BUSY, which made the record say nak for a
+            # push that went on and was acked
+            self._push_repeats += 1
+            log.info("mavlink %s: v%d resent while its push runs; answered when it ends", self.url,
+                     msg.version)
+            return
         why, reason = self._refuse(msg)
         if why:
             log.warning("mavlink link: push of v%d refused: %s", msg.version, why)
@@ -124,6 +138,7 @@ class UnitRequests:
         if push is None or write is None or not push.finished or push.outcome is None:
             return
         self._push, self._push_write = None, None
+        answers, self._push_repeats = 1 + self._push_repeats, 0
         res = push.outcome
         if res.params:
             self._params = {**self._params, **res.params}
@@ -141,7 +156,8 @@ class UnitRequests:
             )
             self.state.save()
             rep = self._reported(self._params)
-            out.append(CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps)))
+            ack = CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps))
+            out.extend([ack] * answers)
             if self.reboot_required:
                 log.info(  # the daemon's session logs the one WARNING (and status says so)
                     "mavlink %s: v%d is stored; %s applies it only after a reboot",
@@ -157,13 +173,12 @@ class UnitRequests:
                 res.reason,
                 "previous set restored" if res.restored else "compensation left as read back",
             )
-            out.append(
-                CoeffNak(
-                    write.version,
-                    coeff_set_crc(write.version, write.terms_id, write.coeffs_dps),
-                    res.nak or int(NakReason.BUSY),
-                )
+            nak = CoeffNak(
+                write.version,
+                coeff_set_crc(write.version, write.terms_id, write.coeffs_dps),
+                res.nak or int(NakReason.BUSY),
             )
+            out.extend([nak] * answers)
 
     def _reported(self: MavlinkLink, params: dict[str, float]) -> CoeffReport:
         """The set the unit holds, in our terms: our stored version when its parameters are intact."""
