@@ -273,3 +273,37 @@ def test_a_read_back_that_differs_from_the_stored_version_is_one_warning(
     assert len(said) == 1 and said[0].levelname == "WARNING"
     assert not s.status()["unit_set"]["agree"]
     assert h.store.get(4242, 1).coefficients_dps == rec.coefficients_dps  # never "fixed"
+
+
+def test_a_unit_that_measures_its_own_boot_bias_holds_the_stored_set_not_a_foreign_one(tmp_path: Path) -> None:
+    """ArduPilot's gyro calibration at each boot rewrites the constant of the held set. Its read-back
+    (the whole cubic, float32) is the stored v1 with another constant: it agrees, and says the bias.
+    Any other difference still disagrees, and a unit without own_boot_bias disagrees as before (every
+    ArduPilot reboot was reported as a CRC disagreement: an integrator's audit)."""
+    import numpy as np
+
+    from gyrocal.daemon.reconcile import reconcile
+    from gyrocal.protocol.messages import CoeffReport, coeff_set_crc
+    from gyrocal.protocol.termsets import TEMP_POLY3_ID
+
+    store = CalibrationStore(tmp_path)
+    coeffs = [[0.01, 2e-4, -3e-6], [-0.02, 1e-4, 5e-6], [0.005, -3e-4, 1e-6]]
+    rec = store.add(CalibrationRecord(serial=9, version=0, terms=["1", "temp", "temp^2"],
+                                      coefficients_dps=coeffs, uncertainty_dps=[[None] * 3] * 3))
+    store.update_push(9, rec.version, {"status": "acked"})
+
+    def report(const_shift: float, t2_shift: float = 0.0) -> CoeffReport:
+        cubic = np.zeros((3, 4))
+        cubic[:, :3] = np.asarray(coeffs, dtype=np.float32)  # the autopilot's float32
+        cubic[:, 0] += const_shift
+        cubic[:, 2] += t2_shift
+        return CoeffReport(rec.version, TEMP_POLY3_ID, cubic.tolist())
+
+    def agree(msg: CoeffReport, own: bool) -> dict:
+        crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
+        return reconcile(store, 9, msg.version, crc, msg, own_boot_bias=own).as_dict()
+
+    boot = agree(report(0.002), own=True)
+    assert boot["agree"] and boot["own_bias_dph"] == [7.2, 7.2, 7.2] and "boot" in boot["note"]
+    assert not agree(report(0.002, t2_shift=1e-6), own=True)["agree"]  # a temperature term moved
+    assert not agree(report(0.002), own=False)["agree"]

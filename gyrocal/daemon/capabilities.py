@@ -46,6 +46,11 @@ class UnitCapabilities:
     board_rotation: dict[str, float] | None = None
     """The unit's board rotation parameters when it holds its set in a frame turned from the samples'
     (an autopilot: sensor vs body frame, docs/mavlink.md "Board rotation"); recorded with each push."""
+    own_boot_bias: bool = False
+    """The unit measures its own gyro bias at each boot and puts it into the constant of the set it
+    holds (ArduPilot's boot gyro calibration rewrites INS_GYROFFS). Its read-back after a reboot is the
+    stored version with the same temperature terms and another constant: that set, not a foreign one
+    (reconcile.py)."""
     ack_within_s: float | None = None
     """[s] How long this unit may take to answer a COEFF_WRITE when that is longer than our protocol's
     (an autopilot writes a set one parameter at a time, each lost echo costing a timeout); the daemon
@@ -71,6 +76,8 @@ class UnitCapabilities:
                "term_sets": None if self.term_sets is None else [list(s) for s in self.term_sets]}
         if self.board_rotation is not None:
             out["board_rotation"] = dict(self.board_rotation)
+        if self.own_boot_bias:
+            out["own_boot_bias"] = True
         if self.ack_within_s is not None:
             out["ack_within_s"] = self.ack_within_s
         return out

@@ -15,6 +15,10 @@ every push's read-back; and at daemon start for the store alone):
   status and the time are kept in ``push.history``, so nothing that happened is erased;
 - a report whose version is stored but whose CRC differs is a disagreement: reported in status and
   logged once, never "fixed" by rewriting the record (the unit may hold a set another tool wrote);
+- on a unit that measures its own bias at boot (``own_boot_bias``: ArduPilot's gyro calibration),
+  a report of a stored version whose temperature terms are the record's and whose constant differs
+  agrees: the unit holds that set with the bias of this boot, which is what it is built to do.
+  Without this, every ArduPilot reboot was reported as a CRC disagreement (an integrator's audit);
 - a report of a version the store does not know (another host, a factory set) is reported as such;
 - at daemon start, every 'pending' record is closed as ``abandoned`` (reason: the daemon stopped
   before its push finished). If the unit turns out to hold it, the first read-back makes it
@@ -30,10 +34,12 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, CalibrationStore, utc_now
 from gyrocal.errors import ProtocolError
 from gyrocal.protocol.messages import coeff_set_crc
-from gyrocal.protocol.termsets import terms_id
+from gyrocal.protocol.termsets import names_for, terms_id
 
 log = logging.getLogger("gyrocal.reconcile")
 
@@ -55,14 +61,42 @@ class Agreement:
     store_status: str | None  # push status of that version in the store, None if unknown to it
     agree: bool
     note: str
+    own_bias_dph: list[float] | None = None  # the unit's boot-measured constant minus the stored one
 
     def as_dict(self) -> dict[str, Any]:
-        return {"agree": self.agree, "note": self.note, "unit_version": self.unit_version,
-                "unit_crc": None if self.unit_crc is None else f"0x{self.unit_crc:08x}",
-                "store_status": self.store_status}
+        out = {"agree": self.agree, "note": self.note, "unit_version": self.unit_version,
+               "unit_crc": None if self.unit_crc is None else f"0x{self.unit_crc:08x}",
+               "store_status": self.store_status}
+        if self.own_bias_dph is not None:
+            out["own_bias_dph"] = self.own_bias_dph
+        return out
 
 
-def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | None) -> Agreement:
+def own_bias_of(rec: CalibrationRecord, report: Any) -> np.ndarray | None:
+    """[deg/s] (3,) The report's constant minus the record's, when every other term's coefficients
+    are the record's (to float32 rounding, as an autopilot holds them) and any term the record lacks
+    is 0 in the report (an autopilot reports its whole cubic); None otherwise."""
+    try:
+        names = list(rec.terms)
+        got_names = names_for(int(report.terms_id))
+        got = np.asarray(report.coeffs_dps, dtype=np.float64)
+        want = np.asarray(rec.coefficients_dps, dtype=np.float64)
+    except (ProtocolError, ValueError, KeyError, TypeError):
+        return None
+    if "1" not in names or got_names is None or "1" not in got_names or not set(names) <= set(got_names) \
+            or got.shape != (3, len(got_names)) or want.shape != (3, len(names)):
+        return None
+    for j, name in enumerate(got_names):
+        if name == "1":
+            continue
+        ref = want[:, names.index(name)] if name in names else np.zeros(3)
+        if not np.allclose(got[:, j], ref, rtol=1e-5, atol=1e-9):
+            return None
+    return got[:, got_names.index("1")] - want[:, names.index("1")]
+
+
+def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | None,
+              report: Any = None, own_boot_bias: bool = False) -> Agreement:
     """Bring the store into line with a read-back of ``version`` with wire ``crc`` (see module doc).
 
     Raises nothing for a store that cannot be written: the caller gets the agreement with a note,
@@ -76,6 +110,15 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
                          f"the unit holds v{version}, which this store does not know "
                          "(written by another host?)")
     status = str(rec.push.get("status"))
+    if crc is not None and record_crc(rec) != crc and own_boot_bias and report is not None \
+            and status in APPLIED_STATUSES:
+        bias = own_bias_of(rec, report)
+        if bias is not None:
+            dph = "/".join(f"{b * 3600:.3g}" for b in bias)
+            return Agreement(version, crc, status, True,
+                             f"the unit holds v{version}, as the store says, with the constant its own "
+                             f"gyro calibration measured at boot ({dph} deg/h from the stored one)",
+                             [round(float(b) * 3600, 3) for b in bias])
     if crc is None or record_crc(rec) != crc:
         return Agreement(version, crc, status, False,
                          f"the unit holds a v{version} whose CRC differs from the stored v{version}")

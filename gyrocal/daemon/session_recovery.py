@@ -94,7 +94,8 @@ class RecoveryMixin:
     def _reconcile(self, msg: CoeffReport) -> None:
         try:
             crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps) if msg.version else None
-            self.agreement = reconcile(self.store, self.hello.serial, msg.version, crc).as_dict()
+            self.agreement = reconcile(self.store, self.hello.serial, msg.version, crc, msg,
+                                       own_boot_bias=self.caps.own_boot_bias).as_dict()
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
         note = self.agreement.get("note")
@@ -106,7 +107,11 @@ class RecoveryMixin:
                     "unit %s: %s; the store keeps its record, and learning uses the unit's set",
                     self.hello.serial, note)
         elif self.agreement.get("agree"):
-            self._disagreement_said = None
+            if self.agreement.get("own_bias_dph") is not None and self._disagreement_said != note:
+                log.info("unit %s: %s", self.hello.serial, note)  # once per switch-on: its boot's bias
+                self._disagreement_said = note
+            elif self.agreement.get("own_bias_dph") is None:
+                self._disagreement_said = None
 
     def _store_push(self, version: int, push: dict[str, Any], now: float) -> None:
         """Record a push result; a store that cannot take it keeps it in memory for later."""

@@ -127,7 +127,8 @@ class MavlinkLink(UnitRequests, Link):
         name = self.profile.name if self.profile is not None else "autopilot"
         return UnitCapabilities(f"mavlink {name}", tuple(self.term_sets.values()), len(TEMP_POLY3_TERMS),
                                 self.reboot_required, clamps_temperature=True,
-                                board_rotation=self.board_rotation, ack_within_s=self.ack_within_s)
+                                board_rotation=self.board_rotation, ack_within_s=self.ack_within_s,
+                                own_boot_bias=bool(self.profile is not None and self.profile.own_boot_bias))
 
     @property
     def ack_within_s(self) -> float:

@@ -81,6 +81,8 @@ class Profile(ABC):
     """One autopilot's gyro compensation for one IMU instance (0-based)."""
 
     name = "autopilot"
+    own_boot_bias = False
+    """Whether the autopilot re-measures the set's constant at each boot (a gyro calibration at rest)."""
     mav_autopilot = -1
     bytewise = False
     max_offset_dps = 11.0
@@ -365,6 +367,8 @@ class ArduPilot(Profile):
         names = self._custom(p)
         rpy = tuple(float(p[n]) for n in names) if names and all(n in p for n in names) else None
         return ardupilot_board_matrix(float(p.get("AHRS_ORIENTATION", 0.0)), rpy)  # type: ignore[arg-type]
+
+    own_boot_bias = True  # INS_GYR_CAL=1, ArduPilot's default: INS_GYROFFS and CALTEMP at each boot
 
     @property
     def durable(self) -> list[str]:
