@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from gyrocal.daemon.session import State
 from gyrocal.sim.unit import Faults
@@ -257,3 +258,28 @@ def test_an_operator_s_rollback_stands_until_the_next_session(tmp_path: Path) ->
     h.switch_on()  # the next session is the daemon's again
     h.run(60, until=_pushed)
     assert h.session.operator_hold is None and h.store.latest(4242).version > v1.version
+
+
+def test_a_unit_that_refuses_every_set_as_out_of_range_gets_three_and_no_more(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An autopilot that refuses one parameter NAKed every new set OUT_OF_RANGE, and each became a
+    stored version with three error lines, v1..v5 in 90 s (an integrator's audit). Now three in a row
+    end the session's pushes with one ERROR and status range_hold; it learns on, and the next
+    switch-on tries again."""
+    import gyrocal.sim.unit as unit_mod
+
+    monkeypatch.setattr(unit_mod, "MAX_COEFF_DPS", 1e-9)  # every set is beyond this unit's range
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    s = h.session
+    h.run(400, until=lambda h: h.session.range_hold is not None)
+    assert s.range_hold is not None and "3 sets in a row" in s.range_hold
+    naks = [r for r in h.store.history(4242) if r.push.get("status") == "nak"]
+    assert len(naks) == 3 and all(r.push.get("nak_reason") == 3 for r in naks)
+    learnt = s.learner.samples
+    h.run(120)
+    assert len(h.store.history(4242)) == 3 and s.learner.samples > learnt
+    assert s.status()["range_hold"] == s.reason == s.range_hold
+    h.switch_on()
+    assert h.session.range_hold is None

@@ -275,7 +275,7 @@ def test_a_read_back_that_differs_from_the_stored_version_is_one_warning(
     assert h.store.get(4242, 1).coefficients_dps == rec.coefficients_dps  # never "fixed"
 
 
-def test_a_unit_that_measures_its_own_boot_bias_holds_the_stored_set_not_a_foreign_one(tmp_path: Path) -> None:
+def test_a_unit_measuring_its_own_boot_bias_holds_the_stored_set_not_a_foreign_one(tmp_path: Path) -> None:
     """ArduPilot's gyro calibration at each boot rewrites the constant of the held set. Its read-back
     (the whole cubic, float32) is the stored v1 with another constant: it agrees, and says the bias.
     Any other difference still disagrees, and a unit without own_boot_bias disagrees as before (every

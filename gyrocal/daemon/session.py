@@ -241,6 +241,8 @@ class Session(RecoveryMixin):
         self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
         # why nothing is pushed on the daemon's own account: an operator pushed a set (hold_for_operator)
         self.operator_hold: str | None = None
+        self._range_naks = 0  # new sets NAKed OUT_OF_RANGE in a row this session
+        self.range_hold: str | None = None  # why no more sets are pushed this session (RANGE_NAKS_MAX)
         self._read_deadline = now
         self._read_asks = 0
         self.refused_reports = 0
@@ -677,6 +679,9 @@ class Session(RecoveryMixin):
         if self.operator_hold is not None:  # an operator's set stands until the next session
             self.reason = self.operator_hold
             return
+        if self.range_hold is not None:
+            self.reason = self.range_hold
+            return
         if self._bias_stage_due():
             self._push_bias(now)
             return
@@ -968,6 +973,7 @@ class Session(RecoveryMixin):
                             self.hello.serial, version)
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             self._held_has_north = False
+            self._range_naks = 0
             log.info("unit %s: v%d applied and read back", self.hello.serial, version)
             self.monitor.clear()
             # the held-out blocks are kept: a refinement is validated over the whole range seen (their
@@ -986,6 +992,16 @@ class Session(RecoveryMixin):
                                "as a set in the unit's table (docs/protocol.md, section 4)")
                 self._unknown_terms[tid] = self.reason
                 log.error("unit %s: %s", self.hello.serial, self.reason)
+            self._range_naks = self._range_naks + 1 if result.nak_reason == int(NakReason.OUT_OF_RANGE) else 0
+            if self._range_naks >= self.RANGE_NAKS_MAX:
+                # an autopilot that refuses one parameter refused every new set the same way, and each
+                # became a stored version with three error lines (an integrator's audit: v1..v5 in 90 s)
+                self.range_hold = (f"the unit refused {self._range_naks} sets in a row as out of range (NAK "
+                                   f"OUT_OF_RANGE, last v{version}); no more sets are pushed this switch-on. "
+                                   "Its log says which value it refused; `gyrocal recalibrate` or the next "
+                                   "switch-on tries again")
+                self.reason = self.range_hold
+                log.error("unit %s: %s", self.hello.serial, self.range_hold)
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             self.state = State.COLLECTING
             if result.transient:  # BUSY, silence, link down: the same record again later
@@ -1048,6 +1064,7 @@ class Session(RecoveryMixin):
             "warm_started_from": self.warm_started_from,
             "resumed_from": self.resumed_from,
             "operator_hold": self.operator_hold,
+            "range_hold": self.range_hold,
             "unit_set": self.agreement,
             "faults": {"refused_reports": self.refused_reports, "send_failures": self.send_failures,
                        "coeff_read_asks": self._read_asks,

@@ -28,6 +28,8 @@ class RecoveryMixin:
     """First wait before a transiently failed push is sent again (same version) [s]; doubles."""
     RETRY_BACKOFF_MAX_S = 300.0
     """Longest wait between two rounds of the same push [s]."""
+    RANGE_NAKS_MAX = 3
+    """New sets NAKed OUT_OF_RANGE in a row after which a session pushes no more (session.range_hold)."""
     STORE_RETRY_S = 5.0
     """Wait before writing to a store that failed again [s]."""
 
