@@ -250,6 +250,26 @@ def test_a_write_resent_while_its_push_runs_gets_that_push_s_answer_not_busy(tmp
             link.stop()
 
 
+def test_a_link_stopped_mid_push_lets_the_push_end_first(tmp_path: Path) -> None:
+    """ENABLE = 0 is written first: a daemon stopped during the coefficient writes left an ArduPilot
+    with its compensation off until the next push. The link's stop now lets the push end."""
+    with sim("ardupilot", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
+        stopped = False
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: link._push is not None and link._push.phase.value == "write", 10, 0.001)
+            link.stop()
+            stopped = True
+            assert col.of(CoeffAck) == [CoeffAck(5, coeff_set_crc(5, TEMP_POLY3_ID, Q))]
+            assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 1.0)
+        finally:
+            if not stopped:
+                link.stop()
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
 from typing import Any
 
@@ -118,6 +119,34 @@ class MavlinkLink(UnitRequests, Link):
         self._mav_stats = {"frames": 0, "bytes": 0, "bad_frames": 0}
         self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
         self._reset_boot()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop; a push under way is first let end (at most ``ack_within_s``).
+
+        Why: the push writes ENABLE = 0 first, and a link closed in the middle left the autopilot
+        with its compensation off until the next push (an ArduPilot then flies on raw gyro offsets).
+        Ended, it holds the new set or the old one; the daemon's record of it stays pending and the
+        next start's read-back settles it (docs/operations.md, "Faults and recovery").
+        """
+        push, thread = self._push, self._thread
+        if push is not None and self._connected and not self._stopped and thread is not None \
+                and thread.is_alive() and thread is not threading.current_thread():
+            budget = self.ack_within_s
+            log.warning("mavlink %s: stopping with a push under way (phase %s): letting it end, at most "
+                        "%.0f s, so the autopilot is not left with its compensation off", self.url,
+                        push.phase.value, budget)
+            end = time.monotonic() + budget
+            while self._push is push and self._connected and time.monotonic() < end:
+                time.sleep(0.02)
+            if self._push is push:
+                log.error("mavlink %s: the push did not end within %.0f s (phase %s); the autopilot may "
+                          "hold no set (ENABLE = 0) until the next push", self.url, budget,
+                          push.phase.value)
+            else:
+                log.info("mavlink %s: the push ended (%s) before stopping", self.url,
+                         "ok" if push.outcome is not None and push.outcome.ok else "failed, previous "
+                         "set restored" if push.outcome is not None and push.outcome.restored else "failed")
+        super().stop(timeout_s)
 
     # ---- capabilities (gyrocal/daemon/capabilities.py: the daemon projects its set onto them) ----
     @property
