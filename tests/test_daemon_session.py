@@ -283,3 +283,22 @@ def test_a_unit_that_refuses_every_set_as_out_of_range_gets_three_and_no_more(
     assert s.status()["range_hold"] == s.reason == s.range_hold
     h.switch_on()
     assert h.session.range_hold is None
+
+
+def test_a_link_fault_before_hello_is_the_status_reason(tmp_path: Path) -> None:
+    """A MAVLink link told px4 that hears an ArduPilot never says HELLO; status said only "waiting for
+    the unit's HELLO: 0 samples received without one" (an integrator's audit). It names the fault."""
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.engine import Engine
+
+    class FaultyLink:
+        def stats(self) -> dict:
+            return {"connected": True, "frames": 12, "target": "/dev/pts/9",
+                    "fault": "the autopilot at /dev/pts/9 reports MAV_AUTOPILOT 3 (ardupilot); this link is "
+                             "configured for px4"}
+
+    eng = Engine(load_config(None, {"state_dir": str(tmp_path), "control_socket": str(tmp_path / "c")}))
+    eng.link = FaultyLink()
+    eng._publish(0.0)
+    assert eng.status["state"] == "WAIT_HELLO"
+    assert eng.status["reason"].endswith("this link is configured for px4")

@@ -307,3 +307,8 @@ def test_a_unit_measuring_its_own_boot_bias_holds_the_stored_set_not_a_foreign_o
     assert boot["agree"] and boot["own_bias_dph"] == [7.2, 7.2, 7.2] and "boot" in boot["note"]
     assert not agree(report(0.002, t2_shift=1e-6), own=True)["agree"]  # a temperature term moved
     assert not agree(report(0.002), own=False)["agree"]
+    # version 0 from an autopilot carries what it subtracts: a set, just not one of ours
+    foreign = reconcile(store, 9, 0, None, CoeffReport(0, TEMP_POLY3_ID, [[1e-3, 0, 0, 0]] * 3))
+    assert "did not write" in foreign.note
+    assert reconcile(store, 9, 0, None, CoeffReport(0, TEMP_POLY3_ID, [[0.0] * 4] * 3)).note == (
+        "the unit holds no set (version 0)")

@@ -568,6 +568,10 @@ class Engine(CommandsMixin):
                 waiting = (f"waiting for the unit's HELLO: {self.samples_before_hello} samples received "
                            f"without one and {self._hello_asks} HELLO_REQUESTs unanswered; power-cycle "
                            "the unit or check its firmware")
+            if link_stats.get("fault"):
+                # an autopilot link that cannot say HELLO says why (the wrong autopilot type, a board
+                # rotation it cannot use); the HELLO count alone hid it (an integrator's audit)
+                waiting = f"waiting for the unit's HELLO: the link reports a fault: {link_stats['fault']}"
             status = {"state": "WAIT_HELLO", "reason": waiting}
         else:
             status = self.session.status()

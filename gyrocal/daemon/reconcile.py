@@ -103,6 +103,14 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
     and the next read-back tries again.
     """
     if version == 0:
+        coeffs = getattr(report, "coeffs_dps", None)
+        if coeffs is not None and np.any(np.asarray(coeffs, dtype=np.float64) != 0.0):
+            # an autopilot reports what it subtracts under version 0 when the set is not one of ours
+            # (its own gyro calibration, another tool's set, a board remounted since our push): "no
+            # set" was said of a remounted board that held one (an integrator's audit)
+            return Agreement(0, crc, None, True, "the unit holds a set gyrocal did not write (version 0 "
+                             "with non-zero coefficients: its own or another tool's calibration, or a "
+                             "set of ours whose frame or parameters changed since)")
         return Agreement(0, crc, None, True, "the unit holds no set (version 0)")
     rec = store.get(serial, version)
     if rec is None:
