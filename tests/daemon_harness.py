@@ -76,6 +76,7 @@ class Harness:
             replies, self.outbox = self.outbox, []
             for msg, last_seq in replies:
                 self.session.on_message(msg, self.now, last_seq)
+            self.session.heard(float(block["t"][-1]))  # as the engine does, before the detector
             decided, still = self.detector.feed(block)
             self.session.feed(decided, still, self.now)
             self.session.tick(self.now)

@@ -217,7 +217,10 @@ def test_a_daemon_restarted_within_a_switch_on_resumes_it_with_no_bias_stage(tmp
     h.run(20)
     s = h.session
     assert s.resumed_from == v1.version and s.status()["resumed_from"] == v1.version
-    assert not s.last_push and h.store.latest(4242).version == v1.version  # no bias stage
+    assert h.store.latest(4242).version == v1.version  # no bias stage
+    # the switch-on's push is the resumed session's last push (status said "none yet")
+    assert s.last_push["resumed"] and s.last_push["version"] == v1.version
+    assert s.last_push["status"] == "acked" and s.operator_hold is None
     assert s.learner.samples > 0  # it learns on, for a full set
     assert any(f"the same switch-on as v{v1.version}" in r.getMessage() for r in caplog.records)
 
@@ -255,6 +258,20 @@ def test_an_operator_s_rollback_stands_until_the_next_session(tmp_path: Path) ->
     assert s.last_push["status"] == "acked" and s.last_push["version"] == v1.version
     assert s.learner.samples > 0 and s.reason.startswith(f"holding the operator's v{v1.version}")
     assert s.status()["operator_hold"] == s.reason
+    assert h.store.get(4242, v1.version).push["operator"] == "a rollback"
+    # a daemon restarted within this switch-on keeps the hold (it pushed over the rollback)
+    from gyrocal.daemon.learner import make_learner
+    from gyrocal.daemon.session import Session, same_boot
+    from tests.daemon_harness import RATE_HZ
+
+    prior = h.store.held_last(4242)
+    h.session = Session(h.cfg, s.hello, make_learner(h.cfg, prior, RATE_HZ), h.store, h.send, h.now,
+                        RATE_HZ, prior.version, same_boot=same_boot(prior, s.hello))
+    h.run(60)
+    r = h.session
+    assert r.resumed_from == v1.version and r.operator_hold is not None
+    assert "before this daemon restarted" in r.operator_hold and r.reason == r.operator_hold
+    assert h.store.latest(4242).version == v1.version and h.unit.applied.version == v1.version
     h.switch_on()  # the next session is the daemon's again
     h.run(60, until=_pushed)
     assert h.session.operator_hold is None and h.store.latest(4242).version > v1.version

@@ -138,13 +138,16 @@ def finite_or_none(a: np.ndarray) -> list[Any]:
 def same_boot(prior: CalibrationRecord | None, hello: Hello) -> dict[str, Any] | None:
     """``{"version", "time_s", "stage"}`` when the stored set the unit held last was acked in the boot
     ``hello`` names, at unit time ``time_s`` [s]; ``stage``: "bias" for a bias-only set, else what its
-    validation said (None for an operator's file). None otherwise (and for records older than that)."""
+    validation said (None for an operator's file); ``push``: the record's push result; ``operator``:
+    what an operator's push of it was ("a rollback"), else None. None otherwise (and for records older
+    than that)."""
     unit = (prior.push.get("unit") or {}) if prior is not None else {}
     t = unit.get("time_s")
     if unit.get("boot_count") != hello.boot_count or not isinstance(t, int | float) or not np.isfinite(t):
         return None
     stage = (prior.stats.get("validation") or {}).get("stage")
-    return {"version": prior.version, "time_s": float(t), "stage": stage}
+    return {"version": prior.version, "time_s": float(t), "stage": stage, "push": dict(prior.push),
+            "operator": prior.push.get("operator")}
 
 
 DPH = 3600.0
@@ -241,6 +244,7 @@ class Session(RecoveryMixin):
         self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
         # why nothing is pushed on the daemon's own account: an operator pushed a set (hold_for_operator)
         self.operator_hold: str | None = None
+        self._operator_push: tuple[int, str] | None = None  # (version, what) of the operator's push
         self._range_naks = 0  # new sets NAKed OUT_OF_RANGE in a row this session
         self.range_hold: str | None = None  # why no more sets are pushed this session (RANGE_NAKS_MAX)
         self._read_deadline = now
@@ -418,6 +422,13 @@ class Session(RecoveryMixin):
             log.info("unit %s: the same switch-on as v%d (boot %d; unit time %.1f s, %.1f s at its push): "
                      "this daemon restarted; %s", self.hello.serial, v, self.hello.boot_count, t_unit,
                      sb["time_s"], then)
+            # the switch-on's push is this session's too: status said "last push: none yet" after a
+            # restart, and an operator's set lost its hold, so the next validation pushed over it
+            if not self.last_push:
+                self.last_push = {**sb["push"], "version": v, "resumed": True}
+            if sb.get("operator"):
+                self._bias_pushed = True
+                self.hold_for_operator(v, f"{sb['operator']}, before this daemon restarted")
         else:
             log.warning("unit %s: boot %d again, but the unit's clock went back (%.1f s, %.1f s at v%d's "
                         "push): a new switch-on whose boot counter did not count; calibrating it as one",
@@ -634,7 +645,9 @@ class Session(RecoveryMixin):
     def hold_for_operator(self, version: int, what: str) -> None:
         """An operator's rollback or file push stands for the rest of this session: the daemon keeps
         learning but pushes no set of its own over it (it pushed a full set over a rollback 24 s later,
-        with no word why: an operator's audit). A new switch-on or `gyrocal recalibrate` ends it."""
+        with no word why: an operator's audit). A new switch-on or `gyrocal recalibrate` ends it; a
+        daemon restarted within the switch-on keeps it (the acked record says ``push.operator``)."""
+        self._operator_push = (version, what.split(",")[0])
         self.operator_hold = (f"holding the operator's v{version} ({what}): no set of the daemon's own is "
                               "pushed until the next switch-on or `gyrocal recalibrate`; learning goes on")
         log.info("unit %s: %s", self.hello.serial, self.operator_hold)
@@ -958,6 +971,11 @@ class Session(RecoveryMixin):
             # which switch-on took it, and when on the unit's clock [s]: a daemon restarted in the same
             # switch-on resumes from this record instead of calibrating the switch-on again (same_boot)
             self.last_push["unit"] = {"boot_count": self.hello.boot_count, "time_s": self.unit_clock_s}
+        if result.status == "acked":
+            op = self._operator_push
+            # whose set it is, for a daemon restarted within this switch-on (same_boot); None clears
+            # a rollback's mark when the daemon itself pushes that version again
+            self.last_push["operator"] = op[1] if op is not None and op[0] == version else None
         if result.status == "acked" and self.caps.reboot_required:
             self.last_push["reboot_required"] = True  # in the store record of the push too
         if result.status == "acked" and self.caps.board_rotation is not None:
