@@ -206,8 +206,8 @@ def test_cli_socket_default_comes_from_gyrocal_socket_env(server, capsys, monkey
 
 def test_cli_rollback_sends_the_version_and_exits_1_when_refused(server, capsys) -> None:
     srv, daemon = server
-    assert cli_main(["rollback", "--socket", str(srv.path)]) == 0
-    assert cli_main(["rollback", "--to", "2", "--socket", str(srv.path)]) == 0
+    assert cli_main(["rollback", "--socket", str(srv.path), "--no-wait"]) == 0
+    assert cli_main(["rollback", "--to", "2", "--socket", str(srv.path), "--no-wait"]) == 0
     assert cli_main(["rollback", "--to", "99", "--socket", str(srv.path)]) == 1
     assert daemon.requests == [{"cmd": "rollback", "to": None}, {"cmd": "rollback", "to": 2},
                                {"cmd": "rollback", "to": 99}]
@@ -235,9 +235,41 @@ def test_cli_push_yaml_sends_three_rows_in_term_order(server, tmp_path: Path) ->
     f = tmp_path / "set.yaml"
     f.write_text("terms: ['1', gx, gy, gz]\ncoefficients:\n  x: [0.1, 0.2, 0.3, 0.4]\n"
                  "  y: [1, 2, 3, 4]\n  z: [-1, -2, -3, -4.5]\n")
-    assert cli_main(["push", "--file", str(f), "--socket", str(srv.path)]) == 0
+    assert cli_main(["push", "--file", str(f), "--socket", str(srv.path), "--no-wait"]) == 0
     assert daemon.requests == [{"cmd": "push", "terms": TERMS, "source": str(f), "coefficients": [
         [0.1, 0.2, 0.3, 0.4], [1.0, 2.0, 3.0, 4.0], [-1.0, -2.0, -3.0, -4.5]]}]
+
+
+def test_cli_push_waits_for_the_unit_s_answer_and_exits_1_on_a_nak(short_dir: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    """The daemon answers a push request when the push starts: `gyrocal push` said "pushing v14" and
+    exit 0 for a set the unit then NAKed OUT_OF_RANGE, which only the journal said (an audit with a
+    unit built from protocol.md). It now waits for the unit's answer: 1 and the reason on a NAK, 0 on
+    an ack; with a daemon that never shows the outcome, it stops after about a second."""
+    answers = {"push": {"version": 14, "status": "nak", "reasons": ["unit answered NAK (reason "
+                                                                     "OUT_OF_RANGE (3))"]}}
+
+    def daemon(req: dict) -> dict:
+        if req.get("cmd") == "status":
+            return {"ok": True, "state": "COLLECTING", "last_push": answers["push"]}
+        return {"ok": True, "message": "pushing v14", "version": 14}
+
+    srv = ControlServer(short_dir / "control.sock", daemon)
+    srv.start()
+    try:
+        f = tmp_path / "set.yaml"
+        f.write_text("terms: ['1']\ncoefficients: [[11.0], [0.0], [0.0]]\n")
+        assert cli_main(["push", "--file", str(f), "--socket", str(srv.path)]) == 1
+        err = capsys.readouterr().err
+        assert "v14 not taken: nak" in err and "OUT_OF_RANGE" in err
+        answers["push"] = {"version": 14, "status": "acked"}
+        assert cli_main(["rollback", "--to", "14", "--socket", str(srv.path)]) == 0
+        assert "v14 acked" in capsys.readouterr().out
+        answers["push"] = {"version": 9, "status": "acked"}  # never this version's outcome
+        assert cli_main(["push", "--file", str(f), "--socket", str(srv.path)]) == 0
+        assert "not in the daemon's status" in capsys.readouterr().out
+    finally:
+        srv.stop()
 
 
 def test_push_accepts_fit_output_and_store_records(tmp_path: Path) -> None:

@@ -319,3 +319,102 @@ def test_a_link_fault_before_hello_is_the_status_reason(tmp_path: Path) -> None:
     eng._publish(0.0)
     assert eng.status["state"] == "WAIT_HELLO"
     assert eng.status["reason"].endswith("this link is configured for px4")
+
+
+def _engine_with_stub_link(tmp_path: Path):
+    from gyrocal.daemon.config import load_config
+    from gyrocal.daemon.engine import Engine
+
+    class StubLink:
+        sent: list = []
+
+        def send(self, msg) -> None:
+            self.sent.append(msg)
+
+        def stats(self) -> dict:
+            return {"connected": True, "frames": 1}
+
+    eng = Engine(load_config(None, {"state_dir": str(tmp_path), "control_socket": str(tmp_path / "c")}))
+    eng.link = StubLink()
+    return eng
+
+
+def _samples(start_seq: int, n: int, rate_hz: float):
+    from gyrocal.daemon.ring import SAMPLE_DTYPE
+
+    b = np.zeros(n, dtype=SAMPLE_DTYPE)
+    b["seq"] = start_seq + np.arange(n)
+    b["t"] = b["seq"] / rate_hz
+    b["az"] = 1.0
+    b["temp"] = 25.0
+    return b
+
+
+def test_a_hello_with_no_rate_is_sized_from_the_samples_once_they_show_it(tmp_path: Path) -> None:
+    """protocol.md: a HELLO stating rate 0 is sized from the rate measured from the samples. At the
+    HELLO none are measured yet, so the session began at 1000 Hz and stayed there: a 200 Hz unit's
+    still detector never saw a still stretch, and it was never calibrated (an audit with a unit built
+    from protocol.md alone). Now the session starts again at the measured rate, once."""
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng._on_message(Hello(77, "1.0", 1, 0), 0.0)
+    assert eng.session.rate_hz == 1000.0
+    first = eng.session
+    eng._feed(_samples(0, 200, 200.0), 1.0)
+    assert eng.session is not first and eng.session.rate_hz == pytest.approx(200.0)
+    assert eng.detector.status()["rate_hz"] == pytest.approx(200.0)
+    again = eng.session
+    eng._feed(_samples(200, 400, 200.0), 3.0)
+    assert eng.session is again  # sized once
+    # the next switch-on (again rate 0) at 100 Hz: the last boot's 200 Hz is only the first guess
+    eng._on_message(Hello(77, "1.0", 2, 0), 10.0)
+    eng._feed(_samples(0, 100, 100.0), 11.0)
+    assert eng.session.rate_hz == pytest.approx(100.0)
+
+
+def test_a_restart_seen_in_the_samples_is_sized_again_by_its_hello_s_rate(tmp_path: Path) -> None:
+    """The unit rebooted from 800 to 200 Hz and its switch-on HELLO was lost: the session the sample
+    numbering started was sized for 800 Hz, and the HELLO that confirmed it kept that (never
+    calibrated, an audit). The confirming HELLO's own rate now sizes a new session."""
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng._on_message(Hello(77, "1.0", 1, 800), 0.0)
+    for k in range(0, 4000, 100):
+        eng._on_samples(_samples(k, 100, 800.0), 5.0)
+    for k in range(0, 400, 20):  # numbering back to 0: a restart, no HELLO
+        eng._on_samples(_samples(k, 20, 200.0), 7.0)
+    assert eng.session.unconfirmed is not None and eng.session.rate_hz == 800.0
+    eng._on_message(Hello(77, "1.0", 2, 200), 8.0)
+    assert eng.session.rate_hz == 200.0 and eng.session.unconfirmed is None
+    assert eng.session.hello.boot_count == 2
+
+
+def test_an_operator_s_set_the_unit_refuses_does_not_hold_the_daemon_back(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An operator pushed a set beyond the unit's range (NAK OUT_OF_RANGE): status then said "holding
+    the operator's v14", a set nobody held, while the unit stayed on an old set at 119 deg/h until
+    `recalibrate` (an audit). A final refusal ends the hold; a BUSY does not (the same version goes
+    again)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(2)
+    s = h.session
+    import gyrocal.sim.unit as unit_mod
+
+    monkeypatch.setattr(unit_mod, "MAX_COEFF_DPS", 1.0)  # a unit with a narrower range than ours
+    names = list(s.names)
+    bad = np.zeros((3, len(names)))
+    bad[0, 0] = 5.0
+    from gyrocal.daemon.store import CalibrationRecord
+
+    rec = h.store.add(CalibrationRecord(serial=4242, version=0, terms=names, coefficients_dps=bad.tolist(),
+                                        uncertainty_dps=[[float("nan")] * len(names)] * 3,
+                                        push={"status": "pending"}))
+    assert s.start_push(rec.version, names, bad, h.now) is None
+    s.hold_for_operator(rec.version, "a file push")
+    h.run(3)
+    assert s.last_push["status"] == "nak" and s.last_push["version"] == rec.version
+    assert s.operator_hold is None

@@ -282,11 +282,73 @@ def configure_rollback(parser: argparse.ArgumentParser) -> None:
     _add_socket(parser)
     parser.add_argument("--to", type=_version, default=None, metavar="VERSION",
                         help="the stored version to push again (default: the acked one before the current)")
+    _add_no_wait(parser)
+
+
+def _add_no_wait(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-wait", action="store_true",
+                        help=f"return once the push has started; by default wait (up to {FOLLOW_S:.0f} s) "
+                             "for the unit's answer and exit 1 unless it acked")
 
 
 def main_rollback(args: argparse.Namespace) -> int:
     reply = request(args.socket, {"cmd": "rollback", "to": args.to})
-    return _answer(reply, f"rolled back to version {reply.get('version', args.to or 'previous')}")
+    rc = _answer(reply, f"rolled back to version {reply.get('version', args.to or 'previous')}")
+    return rc if rc or args.no_wait else follow_push(args.socket, reply.get("version"))
+
+
+FOLLOW_S = 60.0
+"""[s] How long ``push`` and ``rollback`` wait for the unit's answer before leaving it to status."""
+
+
+def _push_of(status: dict, version: int) -> tuple[dict | None, bool]:
+    """The ``last_push`` of ``version`` in a status answer (one unit, or ``units``), and whether any
+    unit is still PUSHING."""
+    units = status.get("units") if isinstance(status.get("units"), list) else [status]
+    found, pushing = None, False
+    for u in units:
+        if not isinstance(u, dict):
+            continue
+        pushing = pushing or u.get("state") == "PUSHING" or u.get("session_state") == "PUSHING"
+        lp = u.get("last_push") or {}
+        if lp.get("version") == version and lp.get("status") not in (None, "pending"):
+            found = lp
+    return found, pushing
+
+
+def follow_push(socket_path: Path, version: Any, timeout_s: float = FOLLOW_S) -> int:
+    """Wait for the unit's answer to the push the daemon just started and print it: 0 when the unit
+    acked and read it back, 1 otherwise. The daemon answers a push request as soon as the push starts,
+    so the command said "pushing v14" and exit 0 for a set the unit then NAKed, which only the journal
+    said (protocol.md: the NAK is what the operator sees; an audit with a unit built from it)."""
+    if not isinstance(version, int):
+        return 0
+    end, quiet = time.monotonic() + timeout_s, 0
+    while time.monotonic() < end:
+        try:
+            st = request(socket_path, {"cmd": "status"})
+        except GyrocalError as err:
+            print(f"gyrocal: v{version}: the daemon's status cannot be read ({err}); see `gyrocal status`",
+                  file=sys.stderr)
+            return 1
+        lp, pushing = _push_of(st, version)
+        if lp is not None:
+            status = lp.get("status")
+            if status == "acked":
+                print(f"v{version} acked by the unit and read back")
+                return 0
+            why = "; ".join(str(r) for r in (lp.get("reasons") or [])[-2:])
+            again = " The daemon sends it again later (`gyrocal status`)." if lp.get("transient") else ""
+            print(f"gyrocal: v{version} not taken: {status}{f' ({why})' if why else ''}.{again}",
+                  file=sys.stderr)
+            return 1
+        quiet = 0 if pushing else quiet + 1
+        if quiet >= 4:  # not pushing, and no outcome of this version: a daemon that does not report it
+            print(f"v{version}: its outcome is not in the daemon's status; see `gyrocal status`")
+            return 0
+        time.sleep(0.25)
+    print(f"gyrocal: v{version} still pushing after {timeout_s:.0f} s; see `gyrocal status`", file=sys.stderr)
+    return 1
 
 
 # --- push ----------------------------------------------------------------------------------------
@@ -296,13 +358,15 @@ def configure_push(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--file", type=Path, required=True, metavar="FILE",
                         help="JSON or YAML with 'terms' and 'coefficients' ({x,y,z} or 3 rows, deg/s per "
                              "term unit); `gyrocal fit --json` output and store records are accepted")
+    _add_no_wait(parser)
 
 
 def main_push(args: argparse.Namespace) -> int:
     terms, coeffs = load_coefficient_file(args.file)
     reply = request(args.socket, {"cmd": "push", "terms": terms, "coefficients": coeffs,
                                   "source": os.fspath(args.file)}, timeout=30.0)
-    return _answer(reply, f"pushed {len(terms)} terms from {args.file}")
+    rc = _answer(reply, f"pushed {len(terms)} terms from {args.file}")
+    return rc if rc or args.no_wait else follow_push(args.socket, reply.get("version"))
 
 
 def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:

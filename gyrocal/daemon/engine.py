@@ -117,6 +117,7 @@ class Engine(CommandsMixin):
         self.last_reload: dict[str, Any] | None = None  # the last SIGHUP's result, for status
         self._rate_dts: deque[float] = deque(maxlen=self.RATE_WINDOW)
         self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
+        self._session_from_hello = False  # the session's start was a HELLO of the unit's (same_boot)
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
@@ -406,6 +407,18 @@ class Engine(CommandsMixin):
                 return
             self.last_hello = msg
             if (s is not None and s.hello.serial == msg.serial and self._seq_session_at is not None
+                    and now - self._seq_session_at < ADOPT_WINDOW_S and msg.rate_hz
+                    and abs(msg.rate_hz - s.rate_hz) > self.RATE_TOL * msg.rate_hz):
+                # the session the sample sequence started was sized for the last boot's rate: kept, its
+                # still detector never saw a still stretch at the new one (a unit rebooted from 800 to
+                # 200 Hz was never calibrated: an audit with a unit built from protocol.md alone)
+                log.info("HELLO from unit %d (boot %d) confirms the restart seen in the samples, at %g Hz: "
+                         "the session started from the samples was sized for %g Hz; it starts again at "
+                         "the stated rate", msg.serial, msg.boot_count, msg.rate_hz, s.rate_hz)
+                self._seq_session_at = None
+                self._start_session(msg, now, from_hello=True)
+                return
+            if (s is not None and s.hello.serial == msg.serial and self._seq_session_at is not None
                     and now - self._seq_session_at < ADOPT_WINDOW_S):
                 # the sample sequence already showed this restart and started its session
                 log.info("HELLO from unit %d (boot %d) confirms the restart seen in the samples: "
@@ -440,9 +453,16 @@ class Engine(CommandsMixin):
             if self.session is not None:
                 self.session.relink(now)
 
-    def _start_session(self, hello: Hello, now: float, from_hello: bool = False) -> None:
+    def _start_session(self, hello: Hello, now: float, from_hello: bool = False,
+                       resized: bool = False) -> None:
         """A new session for ``hello``'s unit; ``from_hello``: the unit itself said who it is (a
-        restart seen only in the samples reuses the last HELLO, whose boot counter proves nothing)."""
+        restart seen only in the samples reuses the last HELLO, whose boot counter proves nothing);
+        ``resized``: the same switch-on, sized again for its measured rate (_check_rate)."""
+        if not resized and not getattr(hello, "rate_hz", 0):
+            # a switch-on that states no rate is sized from its own samples: the last boot's rate is only
+            # the first guess, and its intervals must not outvote this boot's
+            self._rate_dts.clear()
+        self._session_from_hello = from_hello
         old = self.session
         if old is not None:
             old.close(f"a new session started (boot {hello.boot_count})", now)
@@ -497,6 +517,7 @@ class Engine(CommandsMixin):
 
     def _feed(self, block: np.ndarray, now: float) -> None:
         self._measure_rate(block)
+        self._check_rate(now)
         if self.session is None:
             self.samples_before_hello += block.size
             return
@@ -510,6 +531,10 @@ class Engine(CommandsMixin):
     RATE_WINDOW = 256
     """Sample intervals [s] the measured rate is the median of: consecutive seq only, across blocks
     (a CAN link hands the engine one or two samples at a time)."""
+    RATE_SETTLE = 64
+    """Intervals measured since a switch-on before its measured rate may re-size the session."""
+    RATE_TOL = 0.05
+    """A session sized for a rate this far (relative) from the one that applies is sized again."""
 
     def _measure_rate(self, block: np.ndarray) -> None:
         """``rate_hz`` [Hz] from the samples' own time stamps (the unit's clock), for status and for a
@@ -523,6 +548,27 @@ class Engine(CommandsMixin):
         self._rate_dts.extend(dt[dt > 0][-self.RATE_WINDOW:].tolist())
         if len(self._rate_dts) >= 8:
             self.rate_hz = round(1.0 / float(np.median(self._rate_dts)), 3)
+
+    def _check_rate(self, now: float) -> None:
+        """A unit whose HELLO states no rate (0) is sized from the rate measured from its samples'
+        time stamps, as protocol.md says; at its HELLO that rate is not known yet (the guess is the last
+        rate measured, else 1000 Hz), so once RATE_SETTLE intervals of this switch-on are measured, a
+        session sized more than RATE_TOL away starts again at the measured rate, with one line.
+
+        Why: sized for 1000 Hz, a 200 Hz unit's still detector wanted a still stretch five times as
+        long as the one it had, and the unit was never calibrated (an audit with a unit built from
+        protocol.md alone: 0 still samples after 268 s)."""
+        s = self.session
+        if (s is None or s.hello.rate_hz or self.rate_hz is None or len(self._rate_dts) < self.RATE_SETTLE
+                or abs(self.rate_hz - s.rate_hz) <= self.RATE_TOL * self.rate_hz):
+            return
+        log.warning("unit %d: its HELLO states no rate; this switch-on was sized for %g Hz, but its samples "
+                    "come at %g Hz: the session starts again at that rate", s.hello.serial, s.rate_hz,
+                    self.rate_hz)
+        unconfirmed, from_hello = s.unconfirmed, self._session_from_hello
+        self._start_session(s.hello, now, from_hello=from_hello, resized=True)
+        if unconfirmed is not None and self.session is not None:
+            self.session.unconfirmed = unconfirmed
 
     def _record_latency(self, lat_s: np.ndarray) -> None:
         """Keep the newest latencies: from a sample's arrival (rx) to the weights having learnt it."""
@@ -592,6 +638,13 @@ class Engine(CommandsMixin):
                                 if not connected else
                                 f"waiting for the unit: {link_stats.get('target', '?')} is open, "
                                 "nothing heard yet")
+            foreign = int((link_stats.get("errors") or {}).get("foreign_frames") or 0)
+            if connected and foreign:
+                # frames of other nodes on the bus, none of this one's: the node id is the usual cause
+                # (a node-0 daemon on a node-5 unit's bus said only "nothing heard yet": an audit)
+                status["reason"] += (f"; {foreign} frames of other CAN nodes seen, none of this node's: "
+                                     "check link.can_node_id against the unit's (docs/protocol.md, "
+                                     "section 3, \"Setting the node id\")")
         elif silent:
             status["session_state"] = status["state"]
             status["state"] = "UNIT_SILENT"

@@ -613,9 +613,10 @@ class Session(RecoveryMixin):
                 if self._link_warned:
                     self.reason = "the link takes no sends: the unit's set is read again when it returns"
                 elif self._read_asks >= self.READ_WARN_AFTER and not self.refused_reports:
-                    self.reason = (f"the unit does not answer COEFF_READ ({self._read_asks} asks): counting "
-                                   "samples, not learning; is it a listen-only replay or a unit without "
-                                   "COEFF_READ support?")
+                    self.reason = (f"no usable COEFF_REPORT from the unit ({self._read_asks} COEFF_READs): "
+                                   "counting samples, not learning; is it a listen-only replay, a unit "
+                                   "without COEFF_READ support, or are its reports dropped by the link "
+                                   "(link.errors: crc, bad_values)?")
                 self.request_read(now)
             return
         if self._retry is not None and now >= self._retry["at"]:
@@ -1000,6 +1001,13 @@ class Session(RecoveryMixin):
             self.reason = f"monitoring v{version}"
             self._next_validation_at = 2 * self.learner.samples + 1
         else:
+            op = self._operator_push
+            if op is not None and op[0] == version and not result.transient and self.operator_hold:
+                # the unit refused the operator's set for good: it keeps its own, and holding the
+                # daemon's pushes back for a set nobody holds left it on an old set (an audit: 119 deg/h)
+                log.info("unit %s: the operator's v%d was not taken (%s): the daemon's own pushes resume",
+                         self.hello.serial, version, result.status)
+                self.operator_hold = None
             self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
             if result.nak_reason == int(NakReason.UNKNOWN_TERMS):  # final: no new version would help
                 names = self._pending[0]
