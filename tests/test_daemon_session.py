@@ -418,3 +418,14 @@ def test_an_operator_s_set_the_unit_refuses_does_not_hold_the_daemon_back(
     h.run(3)
     assert s.last_push["status"] == "nak" and s.last_push["version"] == rec.version
     assert s.operator_hold is None
+
+
+def test_a_can_link_hearing_only_other_nodes_names_the_node_id(tmp_path: Path) -> None:
+    """A node-0 daemon on a node-5 unit's bus said only "is open, nothing heard yet" while its
+    foreign-frame count grew (an audit). The reason names link.can_node_id."""
+    eng = _engine_with_stub_link(tmp_path)
+    eng.link.stats = lambda: {"connected": True, "frames": 0, "target": "can0 node 0",
+                              "errors": {"foreign_frames": 7399}}
+    eng._publish(0.0)
+    assert eng.status["state"] == "WAIT_UNIT"
+    assert "7399 frames of other CAN nodes" in eng.status["reason"] and "can_node_id" in eng.status["reason"]
