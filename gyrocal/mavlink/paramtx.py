@@ -69,8 +69,8 @@ class OpRunner:
     run. Silence for ``timeout_s`` resends the same request (PARAM_SET is idempotent), at most
     ``retries`` times in all.
 
-    ``gate(now)``, when given, must say True before a request leaves (the first or a resend): the
-    link's proof that the autopilot's clock ran on since its last answer. A request held longer than
+    ``gate(now)``, when given, must say True before a write leaves (the first or a resend): the
+    link's proof that the autopilot's clock ran on since its last answer. A write held longer than
     ``hold_max_s`` ends the run with an error, since nothing then tells whether it rebooted.
     """
 
@@ -115,14 +115,15 @@ class OpRunner:
     def _issue(self, now: float, first: bool) -> None:
         if not self._ops:
             return
-        if self.gate is not None and not self.gate(now):
-            # an autopilot that rebooted while a request was on its way must not get the next one
-            # (a PX4 took the rest of a set into its new boot, acked, and applied none of it)
+        op = self._ops[0]
+        if self.gate is not None and op.value is not None and not self.gate(now):
+            # an autopilot that rebooted while a request was on its way must not get the next write
+            # (a PX4 took the rest of a set into its new boot, acked, and applied none of it). Reads
+            # change nothing: a reboot among them is caught by the next write's gate or the ack's.
             if self._held is None:
                 self._held = (first, now)
             return
         self._held = None
-        op = self._ops[0]
         self._tries = 1 if first else self._tries + 1
         self._deadline = now + self.timeout_s
         if op.value is None:
