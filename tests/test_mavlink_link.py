@@ -203,14 +203,20 @@ def test_a_reboot_mid_push_naks_and_leaves_no_partial_set(tmp_path: Path) -> Non
             link.stop()
 
 
-def test_a_px4_reboot_mid_push_is_never_acked_as_applied(tmp_path: Path) -> None:
+@pytest.mark.parametrize("reboot_at", [5, 18], ids=["at_a_coefficient", "at_enable"])
+def test_a_px4_reboot_mid_push_is_never_acked_as_applied(tmp_path: Path, reboot_at: int) -> None:
     """The PX4 reboots at the 5th PARAM_SET (a coefficient): silent 1.5 s, then it forgets its
     streams. The resent request used to land in the new boot with the rest of the set, the read-back
     matched, and v5 was acked as stored, while that boot had begun with TC_G_ENABLE = 0 (written
     first) and applied none of it (an integrator's audit). Now the push waits for the autopilot's
     clock between requests, sees it went back, and NAKs; the new boot says a push needs a reboot and
-    reports no set; the same version pushed again is acked, waiting for the reboot."""
-    with sim("px4", tmp_path, "--reboot-after-sets", "5") as ap:
+    reports no set; the same version pushed again is acked, waiting for the reboot.
+
+    At the 18th write (ENABLE = 1, after DISABLE and the 16 set parameters) the write lands and its
+    echo is lost to the reboot: the new boot holds the whole set, enabled, so it is reported as v5
+    (the daemon records it applied, ack lost), not as a set gyrocal did not write."""
+    whole = reboot_at == 18
+    with sim("px4", tmp_path, "--reboot-after-sets", str(reboot_at)) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", param_timeout_s=0.5)
         try:
             assert wait_for(lambda: col.of(Hello), 15)
@@ -219,15 +225,15 @@ def test_a_px4_reboot_mid_push_is_never_acked_as_applied(tmp_path: Path) -> None
             assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
             assert not col.of(CoeffAck) and col.of(CoeffNak)[0].reason == NakReason.BUSY
             assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
-            assert col.of(Hello)[1].boot_count == 2 and link.reboot_required is True
-            assert param_becomes(tmp_path, "TC_G_ENABLE", 0.0)
+            assert col.of(Hello)[1].boot_count == 2 and link.reboot_required is (not whole)
+            assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0 if whole else 0.0)
             link.send(CoeffRead())
             assert wait_for(lambda: col.of(CoeffReport), 10)
-            assert col.of(CoeffReport)[0].version == 0
+            assert col.of(CoeffReport)[0].version == (5 if whole else 0)
             link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: col.of(CoeffAck), 20)
             assert col.of(CoeffAck) == [CoeffAck(5, coeff_set_crc(5, TEMP_POLY3_ID, Q))]
-            assert link.reboot_required is True
+            assert link.reboot_required is (not whole)
         finally:
             link.stop()
 

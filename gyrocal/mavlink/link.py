@@ -118,6 +118,7 @@ class MavlinkLink(UnitRequests, Link):
         self._config_fault: str | None = None  # a fault of the unit's parameters, cleared when fixed
         self._mav_stats = {"frames": 0, "bytes": 0, "bad_frames": 0}
         self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
+        self._cut_push: tuple[CoeffWrite, dict[str, float]] | None = None  # a push cut short, its target
         self._reset_boot()
 
     def stop(self, timeout_s: float = 2.0) -> None:

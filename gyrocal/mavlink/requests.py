@@ -143,18 +143,9 @@ class UnitRequests:
         if res.params:
             self._params = {**self._params, **res.params}
         self._adj = None
+        self._cut_push = None
         if res.ok and self.profile is not None:
-            u = self.state.unit(self.serial)
-            rotation = self.profile.rotation_of(res.params)  # the frame the set was written in
-            u.update(
-                version=write.version,
-                coeffs=[list(r) for r in write.coeffs_dps],
-                terms_id=write.terms_id,
-                durable={**{k: res.params[k] for k in self.profile.durable if k in res.params}, **rotation},
-                target={**res.target, self.profile.enable.name: 1.0},
-                rotation=rotation,
-            )
-            self.state.save()
+            self._remember(write, res.params, res.target)
             rep = self._reported(self._params)
             ack = CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps))
             out.extend([ack] * answers)
@@ -166,6 +157,10 @@ class UnitRequests:
                     self.profile.name,
                 )
         else:
+            if not res.restored and res.target:
+                # cut short (a reboot, silence): the autopilot may hold the whole set all the same, its
+                # ENABLE = 1 written before the cut; the next read tells (_after_read)
+                self._cut_push = (write, dict(res.target))
             log.error(
                 "mavlink %s: push of v%d failed: %s (%s)",
                 self.url,
@@ -179,6 +174,22 @@ class UnitRequests:
                 res.nak or int(NakReason.BUSY),
             )
             out.extend([nak] * answers)
+
+    def _remember(self: MavlinkLink, write: CoeffWrite, params: dict[str, float],
+                  target: dict[str, float]) -> None:
+        """The autopilot holds ``write``'s set: keep its version with the parameters that identify it."""
+        assert self.profile is not None
+        u = self.state.unit(self.serial)
+        rotation = self.profile.rotation_of(params)  # the frame the set was written in
+        u.update(
+            version=write.version,
+            coeffs=[list(r) for r in write.coeffs_dps],
+            terms_id=write.terms_id,
+            durable={**{k: params[k] for k in self.profile.durable if k in params}, **rotation},
+            target={**target, self.profile.enable.name: 1.0},
+            rotation=rotation,
+        )
+        self.state.save()
 
     def _reported(self: MavlinkLink, params: dict[str, float]) -> CoeffReport:
         """The set the unit holds, in our terms: our stored version when its parameters are intact."""
@@ -212,6 +223,18 @@ class UnitRequests:
         self._adj = None
         if self._boot_params is None:
             self._boot_params = dict(reader.values)
+        cut = self._cut_push
+        if cut is not None and hasattr(self, "serial"):
+            write, target = cut
+            whole = all(self._params.get(k) == v for k, v in target.items())
+            if whole and self.profile.is_enabled(self._params):
+                # its ENABLE = 1 landed before the cut (the echo was lost to a reboot): the autopilot holds
+                # the whole set, so it is reported as that version and the daemon records it applied
+                # (ack lost), instead of "a set gyrocal did not write" (a PX4 rebooting at the 18th write)
+                log.info("mavlink %s: the autopilot holds v%d whole although its push was cut short",
+                         self.url, write.version)
+                self._remember(write, self._params, target)
+            self._cut_push = None
         why = self.profile.problem(self._params)
         if why:
             self._set_fault(why)
