@@ -67,3 +67,27 @@ def test_convergence_config_from_dict_names_file_field_and_fix() -> None:
     with pytest.raises(ConfigError, match=r"'convergence.max_error_ratio' is -1; write a number > 0"):
         ConvergenceConfig.from_dict({"max_error_ratio": -1}, source="d.yaml")
     assert np.isfinite(ConvergenceConfig.from_dict(None).max_change_dps)
+
+
+def test_fit_of_a_unit_that_held_a_set_adds_it_back(tmp_path: Path) -> None:
+    """A recording's unit held v3: its gyro columns are compensated with it (logformat.md, section 1).
+    `fit` fitted them as they were, i.e. what is left after v3, with no word, and `push --file` of
+    that output would have replaced v3 by its remainder (an audit with foreign recordings). It now adds
+    v3 back, says so, and fits the whole drift: the same log without the applied_* lines fits v3 less."""
+    from gyrocal.model.cli_fit import fit
+    from gyrocal.readers import read_any
+    from gyrocal.replay.source import applied_from_metadata
+
+    src = Path(__file__).resolve().parents[1] / "data" / "sim_can" / "virtual_unit.blf"
+    terms = ["1", "gx", "gy", "gz", "gx^2", "gy^2", "gz^2", "gx*gy", "gy*gz", "gx*gz"]  # v3's own
+    with_set = fit(str(src), "batch", terms)
+    log = read_any(str(src), None, None)
+    held = applied_from_metadata(log.metadata, str(src))
+    assert held is not None and held.version == 3
+    assert with_set["applied_added"]["version"] == 3 and "added back" in with_set["warnings"][-1]
+    plain = tmp_path / "plain.csv"
+    write_log(plain, log.columns, {k: v for k, v in log.metadata.items() if not k.startswith("applied_")})
+    bare = fit(str(plain), "batch", terms)
+    assert "applied_added" not in bare
+    got = np.array([np.subtract(with_set["coefficients"][a], bare["coefficients"][a]) for a in "xyz"])
+    assert np.allclose(got, np.asarray(held.coeffs_dps), atol=1e-9)  # least squares is linear in y

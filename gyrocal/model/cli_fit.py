@@ -38,7 +38,9 @@ from gyrocal.model.methods import LMS, METHODS, make_estimator
 from gyrocal.model.normalise import Normaliser
 from gyrocal.model.prep import prepare
 from gyrocal.model.terms import SEED000_TERMS, TermSpec, read_terms_file
+from gyrocal.protocol import termsets
 from gyrocal.readers import ReadOptions, accounting, add_arguments, read_any, read_from_args
+from gyrocal.replay.source import applied_from_metadata
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -80,6 +82,26 @@ def no_data_error(log: LogData, name: str) -> ConfigError:
                        "nothing is left to fit (docs/logformat.md)")
 
 
+def applied_set(log: LogData, where: str) -> tuple[tuple[list[str], np.ndarray] | None, str | None]:
+    """The set the logged unit held (the ``applied_*`` metadata the CAN and serial readers write), to
+    be added back to its compensated output, and the warning that says so; (None, None) without one.
+
+    Why: fitted as recorded, a log of a unit holding v3 gave what is left after v3, with no word, and
+    `push --file` of that output would have replaced v3 by its small remainder (an audit with foreign
+    recordings)."""
+    rep = applied_from_metadata(log.metadata, where)
+    if rep is None or rep.version == 0 and not np.any(np.asarray(rep.coeffs_dps, dtype=np.float64)):
+        return None, None
+    names = termsets.names_for(rep.terms_id)
+    if names is None:
+        return None, (f"the logged unit held v{rep.version}, terms id 0x{rep.terms_id:04x}, which this "
+                      "tool does not know: fitted as recorded, i.e. what is left after that set, not a "
+                      "whole set to push")
+    return (list(names), np.asarray(rep.coeffs_dps, dtype=np.float64)), (
+        f"the logged unit held v{rep.version} ({len(names)} terms): its output is compensated with it, so "
+        "that set was added back and the fit is of the whole drift (a set to push as it is)")
+
+
 def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False, forgetting: float = 1.0,
         seed: int = 0, log: LogData | None = None, read: ReadOptions | None = None) -> dict:
     """Fit a log; returns the fit object (coefficients, uncertainty and its kind, skipped rows)."""
@@ -88,7 +110,9 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
     if len(log) == 0:
         raise no_data_error(log, log_path)
     spec = TermSpec.parse(terms)
-    data = prepare(log, spec, all_samples)
+    applied, note = applied_set(log, log_path)
+    warnings = list(log.warnings) + ([note] if note else [])
+    data = prepare(log, spec, all_samples, applied=applied)
     if len(data.phi) == 0:
         raise ConfigError(f"{log_path}: none of its {len(log)} rows lies in a still period; "
                           "add --all-samples to fit every sample")
@@ -134,8 +158,11 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
         "rms": {ax: float(rms[i]) for i, ax in enumerate(AXES)},
         "skipped": skipped,
         "rows": data.total_rows, "source_rows": accounting(log)["source_rows"], "still_only": not all_samples,
-        "warnings": list(log.warnings),
+        "warnings": warnings,
     }
+    if applied is not None:
+        out["applied_added"] = {"version": int(log.metadata.get("applied_version", "0")),
+                                "terms": list(applied[0])}
     if offset is not None:
         out["offset_from_ls_sigma"] = {ax: row(offset[i]) for i, ax in enumerate(AXES)}
     return out

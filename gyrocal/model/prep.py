@@ -77,13 +77,21 @@ def segment_ids(mask: np.ndarray) -> np.ndarray:
     return np.maximum(np.cumsum(starts) - 1, 0)
 
 
-def prepare(log: LogData, spec: TermSpec, all_samples: bool = False, window_s: float = 0.4) -> FitData:
-    """Terms, gyro and time of the samples to fit: still ones by default, every one with all_samples."""
+def prepare(log: LogData, spec: TermSpec, all_samples: bool = False, window_s: float = 0.4,
+            applied: tuple[list[str], np.ndarray] | None = None) -> FitData:
+    """Terms, gyro and time of the samples to fit: still ones by default, every one with all_samples.
+
+    ``applied``: (terms, coefficients (3, P) [deg/s]) of the set the logged unit held. Its output is
+    compensated with it (docs/logformat.md, section 1), so that set is added back and the fit is of
+    the drift itself: a whole set, as `gyrocal push --file` takes it."""
     cols = derived_columns(log.columns, t_from_switch_on=from_switch_on(log.metadata))
     g = gravity_direction(log.accel_g)
     cols.update({"gx": g[:, 0], "gy": g[:, 1], "gz": g[:, 2]})
     phi = spec.design(cols)
     y = log.gyro_dps
+    if applied is not None:
+        names, coeffs = applied
+        y = y + TermSpec.parse(names).design(cols) @ np.asarray(coeffs, dtype=np.float64).T
     if all_samples:
         mask = np.ones(len(log), dtype=bool)
     else:
