@@ -101,6 +101,14 @@ def test_other_instance_and_the_averaged_topic(fifo_log: tuple[Path, dict]) -> N
     assert np.median(other["az"]) == pytest.approx(1.0, abs=1e-6) and np.allclose(other["temp"], 50.0)
     averaged = read_any(path, options=ReadOptions(topic="sensor_gyro", instance=1))
     assert averaged.metadata["sensor"] == "PX4 sensor_gyro[1]" and len(averaged) == 1000
+    # the averaged topic pairs by chip too: sensor_gyro[1] is chip A, whose accel is sensor_accel[0]
+    # (by instance number it took sensor_accel[1], chip B's, with no word: a foreign-log audit)
+    assert averaged.metadata["accel_from"] == "sensor_accel[0]"
+    first = read_any(path, options=ReadOptions(topic="sensor_gyro", instance=0))
+    assert first.metadata["accel_from"] == "sensor_accel[1]"
+    # an instance that is not logged is refused, not read from sensor_combined (the primary IMU)
+    with pytest.raises(LogFormatError, match=r"instance 3 is not logged"):
+        read_any(path, options=ReadOptions(instance=3))
     with pytest.raises(LogFormatError, match=r"instances logged: \[0, 1\]"):
         read_any(path, options=ReadOptions(topic="sensor_gyro_fifo", instance=3))
 

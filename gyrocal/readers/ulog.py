@@ -175,6 +175,18 @@ def read_ulog(path: str, options: ReadOptions) -> LogData:
         if gyro is None or accel is None:
             raise LogFormatError(f"{path}: no sensor_gyro/sensor_accel instance {inst}; "
                                  f"instances logged: {have or 'none'} (--instance N)")
+        # the accelerometer of the gyro's own chip (bus and address), as the FIFO path does: instance
+        # numbers of sensor_gyro and sensor_accel need not match (a log with them swapped paired a gyro
+        # with another chip's accel, with no word: a foreign-log audit)
+        ids = gyro.data.get("device_id")
+        dev = int(ids[0]) if ids is not None and len(ids) else None
+        mate = _same_chip(ulog, "sensor_accel", dev) if dev is not None else None
+        if mate is not None:
+            accel = mate
+        elif dev is not None:
+            warnings.append(f"{path}: no sensor_accel of sensor_gyro[{inst}]'s chip (device_id 0x{dev:x}) is "
+                            f"logged; sensor_accel[{accel.multi_id}] is used, which may be another chip")
+        meta["accel_from"] = f"sensor_accel[{accel.multi_id}]"
         tg, ta = _time_s(gyro), _time_s(accel)
         a_raw = np.column_stack([accel.data[k] for k in "xyz"]).astype(np.float64)
         inside = (tg >= ta[0]) & (tg <= ta[-1]) if ta.size else np.zeros(tg.size, dtype=bool)
@@ -185,6 +197,14 @@ def read_ulog(path: str, options: ReadOptions) -> LogData:
             meta["device_id"] = str(int(gyro.data["device_id"][0]))
         log = si_imu_log(tg[inside], g, a, temp, meta, path, {"no_accel": int((~inside).sum())})
     else:
+        if inst != 0 and topic is None:
+            # sensor_combined is the primary IMU, not instance N: refused, as .bin and .tlog refuse an
+            # instance they do not hold (it was read in its place with no word of that)
+            why = "not logged" if gyro is None or accel is None else \
+                f"logged at {len(gyro.data['timestamp'])} samples only (< {MIN_SAMPLES})"
+            raise LogFormatError(f"{path}: sensor_gyro/sensor_accel instance {inst} is {why}; instances "
+                                 f"logged: {have or 'none'} (--instance N); sensor_combined holds the "
+                                 "primary IMU only (--instance 0)")
         comb = _topic(ulog, "sensor_combined", 0)
         if comb is None:
             raise LogFormatError(f"{path}: neither sensor_gyro+sensor_accel (instance {inst}) nor "
@@ -192,7 +212,8 @@ def read_ulog(path: str, options: ReadOptions) -> LogData:
         n_raw = 0 if gyro is None else len(gyro.data["timestamp"])
         if topic is None:
             warnings.append(f"{path}: sensor_gyro[{inst}] has {n_raw} samples (< {MIN_SAMPLES}); reading "
-                            "sensor_combined instead: body frame, AFTER PX4's calibration, no temperature")
+                            "sensor_combined instead: the primary IMU (whichever instance PX4 chose), body "
+                            "frame, AFTER PX4's calibration, no temperature")
         t = np.asarray(comb.data["timestamp"], dtype=np.float64) * 1e-6
         g = np.column_stack([comb.data[f"gyro_rad[{k}]"] for k in range(3)])
         a = np.column_stack([comb.data[f"accelerometer_m_s2[{k}]"] for k in range(3)])
