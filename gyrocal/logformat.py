@@ -188,7 +188,7 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
     p = Path(path)
     name = str(p)
     try:
-        fh = p.open(newline="", encoding="utf-8")
+        fh = p.open(newline="", encoding="utf-8-sig")
     except OSError as err:
         raise LogFormatError(f"{name}: cannot open the log ({err.strerror})") from err
     with fh:

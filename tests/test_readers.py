@@ -299,3 +299,21 @@ def test_damaged_or_foreign_files_end_in_one_line_never_a_traceback(name: str, t
     assert "Traceback" not in err
     if rc != 0:
         assert rc == 2 and err.startswith("gyrocal: error: ") and str(path.name) in err
+
+
+def test_a_csv_with_a_utf8_bom_reads_like_one_without(tmp_path: Path) -> None:
+    """Excel writes a byte order mark first: the header then read "\\ufefft", and the error said
+    "required column(s) t missing" (every column, with the BOM before a `# units:` line): a
+    foreign-log audit. The BOM is skipped, by the whole-file and the streaming readers."""
+    from gyrocal.readers import ReadOptions, read_any
+
+    n = 50
+    cols = {"t": np.arange(n) * 0.01, "wx": np.full(n, 0.1), "wy": np.zeros(n), "wz": np.zeros(n),
+            "ax": np.zeros(n), "ay": np.zeros(n), "az": np.ones(n), "temp": np.full(n, 25.0)}
+    plain = tmp_path / "plain.csv"
+    write_log(plain, cols, {"units": "t=s, gyro=deg/s, accel=g, temp=degC"})
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes().replace(b"\n", b"\r\n"))
+    a, b = read_log(plain), read_log(bom)
+    assert len(b) == n and np.array_equal(a["wx"], b["wx"]) and np.array_equal(a["t"], b["t"])
+    assert len(read_any(str(bom), None, ReadOptions())) == n

@@ -48,7 +48,7 @@ class CsvStream:
 
     def _open(self):  # noqa: ANN202 - a text file
         try:
-            return Path(self.path).open(newline="", encoding="utf-8")
+            return Path(self.path).open(newline="", encoding="utf-8-sig")
         except OSError as err:
             raise LogFormatError(f"{self.path}: cannot open the log ({err.strerror})") from err
 
