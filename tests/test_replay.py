@@ -15,7 +15,7 @@ from gyrocal.daemon.config import load_config
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.drivers import open_link
 from gyrocal.errors import ConfigError, LogFormatError
-from gyrocal.logformat import write_log
+from gyrocal.logformat import read_log, write_log
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, Hello, HelloRequest
 from gyrocal.replay.run import replay
 from gyrocal.replay.source import open_recording
@@ -157,6 +157,18 @@ def test_replay_cli_writes_json_and_text(sim_log: Path, tmp_path: Path,
     text = capsys.readouterr().out
     res = json.loads(out.read_text())
     assert "push v1" in text and "recorded" in text and res["pushes"][0]["status"] == "recorded"
+    # every sample accounted for: the sessions' counts plus what the detector had not decided at the
+    # end of each (a foreign-log audit saw 17971 of 18000 with "dropped: none")
+    assert res["warnings"] == [] and res["not_decided"] >= 0
+    assert sum(x["samples"] for x in res["sessions"]) + res["not_decided"] + res["samples_before_hello"] \
+        == res["samples"]
+    # a recording's warning is in the JSON, not on stderr only (m/s^2 read as g)
+    cols = read_log(sim_log)
+    ms2 = tmp_path / "ms2.csv"
+    write_log(ms2, {**cols.columns, **{k: cols[k] * 9.80665 for k in ("ax", "ay", "az")}},
+              {k: v for k, v in cols.metadata.items() if k != "units"})
+    assert main(["replay", str(ms2), "--json", str(out)]) == 0
+    assert any("m/s^2" in w for w in json.loads(out.read_text())["warnings"])
     assert main(["replay", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
 

@@ -131,6 +131,13 @@ class Replay:
             "samples_per_s": round(samples / self.wall_s, 1) if self.wall_s > 0 else None,
             "sessions": sessions, "validations": self.validations, "pushes": pushes,
             "decisions": self.decisions,
+            # the recording's warnings (units, pauses, instances) in the JSON too, not on stderr only:
+            # a log in m/s^2 was replayed into a "validated" push 57x too small (a foreign-log audit)
+            "warnings": list(self.recording.warnings),
+            # samples the still detector had not decided when its session ended (its look-ahead, a few
+            # tenths of a second per session): the sessions' counts are short by these, nothing is lost
+            "not_decided": max(0, samples - eng.samples_before_hello - eng.dropped_nonfinite
+                               - sum(int(x["samples"]) for x in sessions)),
         }
 
 
