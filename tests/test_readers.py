@@ -317,3 +317,22 @@ def test_a_csv_with_a_utf8_bom_reads_like_one_without(tmp_path: Path) -> None:
     a, b = read_log(plain), read_log(bom)
     assert len(b) == n and np.array_equal(a["wx"], b["wx"]) and np.array_equal(a["t"], b["t"])
     assert len(read_any(str(bom), None, ReadOptions())) == n
+
+
+def test_a_text_can_log_cut_mid_line_keeps_its_frames_and_counts_the_cut(tmp_path: Path) -> None:
+    """A logger killed mid-write leaves a last line without its newline; python-can then raised and
+    the whole file was refused (a foreign-log audit). The frames before it stand, the cut bytes are
+    counted as truncated_bytes (as the .cap and .blf readers do)."""
+    from gyrocal.readers import ReadOptions, read_any
+
+    src = Path(__file__).resolve().parents[1] / "data" / "sim_can" / "virtual_unit_short.asc"
+    whole = read_any(str(src), None, ReadOptions())
+    text = src.read_bytes().rstrip(b"\n")
+    lines = text.split(b"\n")
+    last_frame = max(i for i, ln in enumerate(lines) if b" Rx " in ln or b" Tx " in ln)
+    cut = b"\n".join(lines[:last_frame]) + b"\n" + lines[last_frame][:20]
+    f = tmp_path / "cut.asc"
+    f.write_bytes(cut)
+    log = read_any(str(f), None, ReadOptions())
+    assert log.dropped.get("truncated_bytes") == 20
+    assert len(whole) - 1 <= len(log) <= len(whole)

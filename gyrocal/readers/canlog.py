@@ -25,6 +25,21 @@ from gyrocal.readers import ReadOptions
 from gyrocal.readers.stream import messages_to_log
 
 
+def _partial_last_line(path: str) -> int:
+    """Bytes of a text log's last line when it lacks its newline (cut mid-write), else 0."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, 2)
+            size = fh.tell()
+            fh.seek(max(0, size - 4096))
+            tail = fh.read()
+    except OSError:
+        return 0
+    if not tail or tail.endswith(b"\n") or b"\0" in tail:
+        return 0
+    return len(tail) - (tail.rfind(b"\n") + 1)
+
+
 class CanRecording:
     """The unit messages of a python-can log, in file order, with the decoder's counters after use."""
 
@@ -86,9 +101,19 @@ class CanRecording:
         try:
             for frame in reader:
                 yield from route(frame)
+            cut = _partial_last_line(self.path)
+            if cut:  # a cut last line that python-can skipped, or read as a short frame: said all the same
+                self.counts["truncated_bytes"] = cut
         except Exception as err:  # python-can's readers raise their own errors on a damaged file
             if isinstance(err, LogFormatError):
                 raise
+            cut = _partial_last_line(self.path)
+            if cut:
+                # a text log whose last line was cut (a logger killed mid-write): the frames before it
+                # stand and the cut bytes are counted, as the .cap and .blf readers do (it refused the
+                # whole file: a foreign-log audit)
+                self.counts["truncated_bytes"] = cut
+                return
             raise LogFormatError(f"{self.path}: python-can failed while reading it ({err})") from err
         finally:
             stop = getattr(reader, "stop", None)
@@ -105,7 +130,7 @@ def read_canlog(path: str, options: ReadOptions, fast: bool = True) -> LogData:
     rec = CanRecording(path, options.dbc, fast)
     log = messages_to_log(rec.messages(), path)
     for k, v in rec.counts.items():
-        if v and (k == "error_frames" or k.startswith("blf_")):
+        if v and (k in ("error_frames", "truncated_bytes") or k.startswith("blf_")):
             log.dropped[k] = int(v)
     for k, v in rec.stats().items():  # the decoder's counters, read once the generator has run
         if k not in ("frames", "bytes", "foreign_frames") and v:
