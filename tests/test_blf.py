@@ -300,7 +300,8 @@ def test_replay_of_a_blf_decides_the_same_fast_or_frame_by_frame(tmp_path: Path,
     path = str(DATA / "sim_can" / "virtual_unit.blf")
     fast = replay(open_recording(path), cfg())
     monkeypatch.setattr(canlog, "CanRecording",
-                        lambda p, dbc=None, fast=True, _cls=canlog.CanRecording: _cls(p, dbc, False))
+                        lambda p, dbc=None, fast=True, node_id=0, _cls=canlog.CanRecording:
+                        _cls(p, dbc, False, node_id))
     slow = replay(open_recording(path), cfg())
     for r in (fast, slow):
         r.pop("wall_s"), r.pop("samples_per_s")  # the host's speed

@@ -336,3 +336,28 @@ def test_a_text_can_log_cut_mid_line_keeps_its_frames_and_counts_the_cut(tmp_pat
     log = read_any(str(f), None, ReadOptions())
     assert log.dropped.get("truncated_bytes") == 20
     assert len(whole) - 1 <= len(log) <= len(whole)
+
+
+def test_a_can_log_of_a_unit_on_another_node_reads_with_its_node_id(tmp_path: Path) -> None:
+    """protocol.md allows nodes 0..15, but a recording of a node-3 unit was unreadable ("no sample
+    could be read") and a DBC with its ids moved was refused (a foreign-log audit). `--instance N` is
+    the node id for a CAN log; frames of other nodes are foreign, not host frames."""
+    import can
+
+    from gyrocal.readers import ReadOptions, read_any
+
+    src = Path(__file__).resolve().parents[1] / "data" / "sim_can" / "virtual_unit_short.asc"
+    node0 = read_any(str(src), None, ReadOptions())
+    moved = tmp_path / "node3.asc"
+    with can.ASCWriter(str(moved)) as out:
+        for m in can.LogReader(str(src)):
+            if not m.is_error_frame and not m.is_extended_id and 0x100 <= m.arbitration_id < 0x200:
+                m.arbitration_id += 3
+            out.on_message_received(m)
+    node3 = read_any(str(moved), None, ReadOptions(instance=3))
+    assert len(node3) == len(node0) and np.array_equal(node3["wx"], node0["wx"])
+    assert node3.metadata.get("applied_version") == node0.metadata.get("applied_version")
+    with pytest.raises(LogFormatError, match=r"no sample of the unit on node 0, but \d+ frames of other"):
+        read_any(str(moved), None, ReadOptions())  # node 0 hears none of it, and says why
+    with pytest.raises(ConfigError, match="node id, 0..15"):
+        read_any(str(moved), None, ReadOptions(instance=16))

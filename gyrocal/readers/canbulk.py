@@ -91,8 +91,10 @@ class BulkCanDecoder:
     """
 
     def __init__(self, codec: CanCodec, decoder: CanDecoder, accept: frozenset[int] | None,
-                 route: Callable[[Any], Iterable[object]], counts: dict[str, int]) -> None:
+                 route: Callable[[Any], Iterable[object]], counts: dict[str, int],
+                 host_ids: frozenset[int] | None = None) -> None:
         self.codec, self.decoder, self.accept, self.route, self.counts = codec, decoder, accept, route, counts
+        self.host_ids = host_ids
         self.signals = sample_signals(codec)
         self.known = np.array(sorted(codec.ids.values()), dtype=np.uint32)
         self.bulk_samples = 0
@@ -120,7 +122,11 @@ class BulkCanDecoder:
             host = np.zeros(n, dtype=bool)
         else:
             accepted = np.isin(ids, np.array(sorted(self.accept), dtype=np.uint32))
-            host = ~special & ~accepted & ~ext & ((ids >> 8) == 1)
+            if self.host_ids is not None:
+                to_host = np.isin(ids, np.array(sorted(self.host_ids), dtype=np.uint32))
+            else:
+                to_host = (ids >> 8) == 1
+            host = ~special & ~accepted & ~ext & to_host
         self.counts["host_frames"] = self.counts.get("host_frames", 0) + int(host.sum())
         to_decoder = ~special & ~host
         known = to_decoder & np.isin(ids, self.known) & ~ext & ~remote

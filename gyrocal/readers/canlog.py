@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from gyrocal.errors import LogFormatError
+from gyrocal.errors import ConfigError, LogFormatError
 from gyrocal.logformat import LogData
 from gyrocal.readers import ReadOptions
 from gyrocal.readers.stream import messages_to_log
@@ -43,7 +43,7 @@ def _partial_last_line(path: str) -> int:
 class CanRecording:
     """The unit messages of a python-can log, in file order, with the decoder's counters after use."""
 
-    def __init__(self, path: str, dbc: str | None = None, fast: bool = True) -> None:
+    def __init__(self, path: str, dbc: str | None = None, fast: bool = True, node_id: int = 0) -> None:
         import can
 
         from gyrocal.drivers.can_link import frame_ids_sent_by
@@ -51,11 +51,18 @@ class CanRecording:
 
         if not Path(path).exists():
             raise LogFormatError(f"{path}: cannot open the log (no such file)")
+        if not 0 <= node_id <= 15:
+            raise ConfigError(f"--instance {node_id}: for a CAN log it is the unit's node id, 0..15 "
+                              "(docs/protocol.md, section 3)")
         self.path = path
         self._can = can
-        self.codec = CanCodec(dbc)
+        # the unit's node id (`--instance N`): a recording of a node-3 unit was unreadable, and a DBC
+        # with its ids moved was refused (a foreign-log audit)
+        self.codec = CanCodec(dbc, node_id=node_id)
         self.decoder = self.codec.decoder()
         self.accept = frame_ids_sent_by(self.codec, "UNIT")
+        self.host_ids = frame_ids_sent_by(self.codec, "HOST")
+        """The host's frames to this node: counted as host_frames; other nodes' are foreign."""
         self.counts = {"host_frames": 0, "error_frames": 0}
         self.fast = fast and path.lower().endswith(".blf")
         """Read a .blf with readers.blf and decode it in bulk (False: can.LogReader, frame by frame)."""
@@ -68,7 +75,8 @@ class CanRecording:
             counts["error_frames"] += 1
         elif accept is not None and frame.arbitration_id in accept:
             yield from self.decoder.feed(frame)
-        elif accept is not None and not frame.is_extended_id and frame.arbitration_id >> 8 == 1:
+        elif not frame.is_extended_id and (frame.arbitration_id in self.host_ids if self.host_ids is not None
+                                           else accept is not None and frame.arbitration_id >> 8 == 1):
             counts["host_frames"] += 1
         else:
             yield from self.decoder.feed(frame)  # the decoder counts foreign frames itself
@@ -86,7 +94,8 @@ class CanRecording:
             if blf is not None:
                 from gyrocal.readers.canbulk import BulkCanDecoder
 
-                bulk = BulkCanDecoder(self.codec, self.decoder, self.accept, self.route, self.counts)
+                bulk = BulkCanDecoder(self.codec, self.decoder, self.accept, self.route, self.counts,
+                                      self.host_ids)
                 for frames in blf.chunks():
                     yield from bulk.messages(frames)
                 for reason, n in blf.dropped.items():
@@ -127,7 +136,7 @@ class CanRecording:
 def read_canlog(path: str, options: ReadOptions, fast: bool = True) -> LogData:
     """A python-can log's SAMPLEs as log columns; HELLOs split sessions. ``fast=False`` reads a
     .blf with can.LogReader frame by frame (the reference the fast path is tested against)."""
-    rec = CanRecording(path, options.dbc, fast)
+    rec = CanRecording(path, options.dbc, fast, options.instance)
     log = messages_to_log(rec.messages(), path)
     for k, v in rec.counts.items():
         if v and (k in ("error_frames", "truncated_bytes") or k.startswith("blf_")):
@@ -137,4 +146,10 @@ def read_canlog(path: str, options: ReadOptions, fast: bool = True) -> LogData:
             log.dropped[k] = int(v)
     log.metadata["host_frames"] = str(rec.counts["host_frames"])
     log.metadata["can_frames"] = str(rec.stats().get("frames", 0))
+    foreign = int(rec.stats().get("foreign_frames", 0))
+    if foreign:
+        log.metadata["foreign_frames"] = str(foreign)
+    if len(log) == 0 and foreign:
+        raise LogFormatError(f"{path}: no sample of the unit on node {options.instance}, but {foreign} "
+                             "frames of other CAN nodes: give the unit's node id with --instance N (0..15)")
     return log

@@ -120,7 +120,7 @@ def open_recording(path: str, kind: str | None = None, options: ReadOptions | No
         from gyrocal.readers.canlog import CanRecording
 
         def make() -> Any:
-            return CanRecording(path, options.dbc)
+            return CanRecording(path, options.dbc, node_id=options.instance)
     elif kind == "serial":
         from gyrocal.readers.serialcap import SerialRecording
 
