@@ -206,7 +206,12 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
     columns = {h: table[:, i].copy() for i, h in enumerate(header)}
     if "session" not in columns:
         columns["session"] = np.zeros(table.shape[0])
-    from gyrocal.readers.units import convert_columns, declared_units, looks_like_si
+    from gyrocal.readers.units import (
+        convert_columns,
+        declared_units,
+        looks_like_si,
+        temperature_units_warning,
+    )
 
     declared = declared_units(metadata.get("units", ""), f"{name}: '# units:' line")
     declared.update(units or {})
@@ -224,9 +229,9 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
             + ", ".join(f"{c} {k}" for c, k in by_column.items())
             + ("; an optional column (temp, ref_w*, ...) can be left out of the file, or filled"
                if set(by_column) - set(REQUIRED) else ""))
-    warning = looks_like_si(log)
-    if warning:
-        log.warnings.append(warning)
+    for warning in (looks_like_si(log), temperature_units_warning(log)):
+        if warning:
+            log.warnings.append(warning)
     return log
 
 

@@ -361,3 +361,22 @@ def test_a_can_log_of_a_unit_on_another_node_reads_with_its_node_id(tmp_path: Pa
         read_any(str(moved), None, ReadOptions())  # node 0 hears none of it, and says why
     with pytest.raises(ConfigError, match="node id, 0..15"):
         read_any(str(moved), None, ReadOptions(instance=16))
+
+
+def test_a_kelvin_temperature_and_a_column_typo_are_said(tmp_path: Path) -> None:
+    """A log in K was read as 298 degC with no word, and `--columns tmp=temp_K` quietly left the log
+    without temp (a foreign-log audit): a warning names the units, the typo is an error."""
+    from gyrocal.readers import options_from_args
+
+    n = 60
+    cols = {"t": np.arange(n) * 0.01, "wx": np.zeros(n), "wy": np.zeros(n), "wz": np.zeros(n),
+            "ax": np.zeros(n), "ay": np.zeros(n), "az": np.ones(n), "temp": np.full(n, 298.15)}
+    f = tmp_path / "k.csv"
+    write_log(f, cols)
+    log = read_log(f)
+    assert any("looks like kelvin" in w and "temp=K" in w for w in log.warnings)
+    cols["temp"] = np.full(n, 25.0)
+    write_log(f, cols)
+    assert not any("kelvin" in w for w in read_log(f).warnings)
+    with pytest.raises(ConfigError, match="'tmp' is not one of our columns"):
+        options_from_args(Namespace(columns="t=time,tmp=temp_K", units=None))

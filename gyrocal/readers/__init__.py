@@ -25,7 +25,7 @@ from pathlib import Path
 from types import ModuleType
 
 from gyrocal.errors import ConfigError, LogFormatError
-from gyrocal.logformat import LogData
+from gyrocal.logformat import OPTIONAL, REQUIRED, LogData
 
 READERS: dict[str, tuple[str, str]] = {
     "csv": ("gyrocal.readers.csvlog", "read_csv"),
@@ -144,6 +144,10 @@ def options_from_args(args: argparse.Namespace) -> ReadOptions:
         ours, sep, theirs = item.partition("=")
         if not sep or not ours.strip() or not theirs.strip():
             raise ConfigError(f"--columns: {item!r} is not OURS=THEIRS (e.g. wx=gyro_x)")
+        if ours.strip() not in (*REQUIRED, *OPTIONAL):
+            # a typo (tmp=temp_K) left temp out of the log with no word: a foreign-log audit
+            raise ConfigError(f"--columns: {ours.strip()!r} is not one of our columns "
+                              f"({', '.join((*REQUIRED, *OPTIONAL))}); write OURS=THEIRS, e.g. temp=temp_K")
         columns[ours.strip()] = theirs.strip()
     units = parse_units(args.units) if getattr(args, "units", None) else {}
     return ReadOptions(columns, units, getattr(args, "instance", 0) or 0, getattr(args, "topic", None),

@@ -23,7 +23,7 @@ from gyrocal.logformat import (
     _slow_body,
     read_header,
 )
-from gyrocal.readers.units import convert_columns, declared_units, looks_like_si
+from gyrocal.readers.units import convert_columns, declared_units, looks_like_si, temperature_units_warning
 
 BLOCK_ROWS = 1 << 16
 
@@ -81,9 +81,10 @@ class CsvStream:
                 convert_columns(cols, self.units)
                 self._check_order(cols, prev, lineno)
                 if self.rows == 0 and table.shape[0]:
-                    warning = looks_like_si(LogData(cols, source=name))
-                    if warning:
-                        self.warnings.append(warning)
+                    first = LogData(cols, source=name)
+                    for warning in (looks_like_si(first), temperature_units_warning(first)):
+                        if warning:
+                            self.warnings.append(warning)
                 self.rows += table.shape[0]
                 yield cols
 

@@ -90,3 +90,24 @@ def looks_like_si(log: object) -> str | None:
                 "--units accel=m/s^2,gyro=rad/s or write '# units: gyro=rad/s accel=m/s^2' in the "
                 "header (docs/logformat.md)")
     return None
+
+
+def temperature_units_warning(log: object) -> str | None:
+    """A warning when the temp column [degC] looks like kelvin or Fahrenheit, else None.
+
+    Why: a log in K was read as 298 degC with no word (a foreign-log audit). An IMU's die
+    temperature lies within -55..125 degC; a median above 150 is not degC. K (about 220..420) is told
+    from F by nothing but range, so both are named, and the fix is the units flag.
+    """
+    cols = log.columns  # type: ignore[attr-defined]
+    temp = cols.get("temp")
+    if temp is None or np.size(temp) == 0:
+        return None
+    med = float(np.nanmedian(temp))
+    if not np.isfinite(med) or med <= 150.0:
+        return None
+    guess = "kelvin" if 200.0 <= med <= 450.0 else "not degC"
+    return (f"{getattr(log, 'source', 'log')}: the temperature's median is {med:.1f}, which looks like "
+            f"{guess} where degC is expected; if so, pass --units temp=K (or temp=degF) or write "
+            "'# units: temp=K' in the header (docs/logformat.md)")
+
