@@ -112,7 +112,10 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
     spec = TermSpec.parse(terms)
     applied, note = applied_set(log, log_path)
     warnings = list(log.warnings) + ([note] if note else [])
-    data = prepare(log, spec, all_samples, applied=applied)
+    try:
+        data = prepare(log, spec, all_samples, applied=applied)
+    except ConfigError as err:  # a term needs a column this log lacks: say which log
+        raise ConfigError(f"{log_path}: {err}") from None
     if len(data.phi) == 0:
         raise ConfigError(f"{log_path}: none of its {len(log)} rows lies in a still period; "
                           "add --all-samples to fit every sample")
