@@ -377,6 +377,9 @@ def test_a_kelvin_temperature_and_a_column_typo_are_said(tmp_path: Path) -> None
     assert any("looks like kelvin" in w and "temp=K" in w for w in log.warnings)
     cols["temp"] = np.full(n, 25.0)
     write_log(f, cols)
-    assert not any("kelvin" in w for w in read_log(f).warnings)
+    assert not read_log(f).warnings
+    cols["t"] = np.arange(n) * 10.0  # 100 Hz in ms, read as s
+    write_log(f, cols)
+    assert any("looks like a time column in ms" in w for w in read_log(f).warnings)
     with pytest.raises(ConfigError, match="'tmp' is not one of our columns"):
         options_from_args(Namespace(columns="t=time,tmp=temp_K", units=None))

@@ -23,7 +23,13 @@ from gyrocal.logformat import (
     _slow_body,
     read_header,
 )
-from gyrocal.readers.units import convert_columns, declared_units, looks_like_si, temperature_units_warning
+from gyrocal.readers.units import (
+    convert_columns,
+    declared_units,
+    looks_like_si,
+    temperature_units_warning,
+    time_units_warning,
+)
 
 BLOCK_ROWS = 1 << 16
 
@@ -82,7 +88,8 @@ class CsvStream:
                 self._check_order(cols, prev, lineno)
                 if self.rows == 0 and table.shape[0]:
                     first = LogData(cols, source=name)
-                    for warning in (looks_like_si(first), temperature_units_warning(first)):
+                    for warning in (looks_like_si(first), temperature_units_warning(first),
+                                    time_units_warning(first)):
                         if warning:
                             self.warnings.append(warning)
                 self.rows += table.shape[0]

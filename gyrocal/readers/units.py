@@ -111,3 +111,25 @@ def temperature_units_warning(log: object) -> str | None:
             f"{guess} where degC is expected; if so, pass --units temp=K (or temp=degF) or write "
             "'# units: temp=K' in the header (docs/logformat.md)")
 
+
+def time_units_warning(log: object) -> str | None:
+    """A warning when the time column [s] looks like ms, us or ns, else None.
+
+    Why: a 100 Hz log with its time in ms was read at 0.1 Hz with no word (a foreign-log audit). An
+    IMU log's median sample interval is well under 0.5 s; above that the time is in a finer unit.
+    """
+    t = log.columns.get("t")  # type: ignore[attr-defined]
+    if t is None or np.size(t) < 3:
+        return None
+    dt = np.diff(np.asarray(t, dtype=np.float64))
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    if dt.size == 0:
+        return None
+    med = float(np.median(dt))
+    if med <= 0.5:
+        return None
+    guess = "ms" if med < 500.0 else "us" if med < 5e5 else "ns"
+    return (f"{getattr(log, 'source', 'log')}: the median sample interval is {med:.3g} s "
+            f"({1.0 / med:.3g} Hz), which looks like a time column in {guess}; if so, pass --units "
+            f"time={guess} or write '# units: time={guess}' in the header (docs/logformat.md)")
+
