@@ -254,3 +254,14 @@ def test_sample_frames_match_the_documented_worked_example() -> None:
         (0x1E0, "67 60 da d9 ff 00 40 1f"),
         (0x1F0, "07 10 5e 5f 80 c1 60 e3"),
     ]
+
+
+def test_remote_extended_and_error_frames_on_our_ids_are_foreign_not_unknown_types() -> None:
+    """protocol.md's table: remote, extended-id and error frames are foreign_frames. A remote frame
+    on our node's HELLO_BOOT id was counted as an unknown type (a foreign-log audit)."""
+    dec = CanCodec().decoder()
+    for m in (can.Message(arbitration_id=0x120, is_remote_frame=True, is_extended_id=False),
+              can.Message(arbitration_id=0x120, data=bytes(8), is_extended_id=True),
+              can.Message(arbitration_id=0x120, is_error_frame=True, is_extended_id=False)):
+        assert dec.feed(m) == []
+    assert dec.stats.foreign_frames == 3 and dec.stats.unknown_types == 0

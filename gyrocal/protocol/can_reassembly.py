@@ -126,7 +126,10 @@ class CanDecoder:
         entry = self._by_id.get(frame.arbitration_id)
         if entry is None or frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
             fid = frame.arbitration_id
-            if not frame.is_extended_id and 0x100 <= fid < 0x200 and fid & 0xF == self.node_id:
+            # a remote, error or extended frame is never ours, whatever its id (protocol.md's table:
+            # foreign_frames; a remote frame on our id was counted as an unknown type)
+            ours = not (frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame)
+            if ours and 0x100 <= fid < 0x200 and fid & 0xF == self.node_id:
                 st.unknown_types += 1
                 st.garbage_bytes += len(frame.data)
             else:

@@ -133,7 +133,7 @@ class BulkCanDecoder:
         # frames the decoder only counts (CanDecoder.feed's first branch): no state, any order
         only_counted = to_decoder & ~known
         node = self.decoder.node_id
-        unknown = only_counted & ~ext & (ids >= 0x100) & (ids < 0x200) & ((ids & 0xF) == node)
+        unknown = only_counted & ~ext & ~remote & (ids >= 0x100) & (ids < 0x200) & ((ids & 0xF) == node)
         st.unknown_types += int(unknown.sum())
         st.garbage_bytes += int(frames.length[unknown].sum())
         st.foreign_frames += int((only_counted & ~unknown).sum())
