@@ -91,3 +91,16 @@ def test_fit_of_a_unit_that_held_a_set_adds_it_back(tmp_path: Path) -> None:
     assert "applied_added" not in bare
     got = np.array([np.subtract(with_set["coefficients"][a], bare["coefficients"][a]) for a in "xyz"])
     assert np.allclose(got, np.asarray(held.coeffs_dps), atol=1e-9)  # least squares is linear in y
+
+
+def test_a_log_of_one_or_two_rows_is_not_fitted_as_still(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture) -> None:
+    """1-2 rows were taken as a still period and "fitted" with numpy warnings, while 4-49 rows were
+    refused (a foreign-log audit): too short to judge is not still, with the same one-line error."""
+    n = 2
+    cols = {"t": np.arange(n) * 0.01, "wx": np.zeros(n), "wy": np.zeros(n), "wz": np.zeros(n),
+            "ax": np.zeros(n), "ay": np.zeros(n), "az": np.ones(n), "temp": np.full(n, 25.0)}
+    f = tmp_path / "two.csv"
+    write_log(f, cols)
+    assert main(["fit", str(f)]) == 2
+    assert "none of its 2 rows lies in a still period" in capsys.readouterr().err

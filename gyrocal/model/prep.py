@@ -63,8 +63,8 @@ def block_terms(spec: TermSpec, columns: dict[str, np.ndarray]) -> np.ndarray:
 def still_mask(t: np.ndarray, gyro_dps: np.ndarray, accel_g: np.ndarray, window_s: float = 0.4) -> np.ndarray:
     """Boolean (N,) still flags of one session from gyro (N, 3) [deg/s] and accel (N, 3) [g]."""
     n = len(t)
-    if n < 3:
-        return np.ones(n, dtype=bool)
+    if n < 3:  # too short to judge: not still (1-2 rows were "fitted" as still, with numpy warnings)
+        return np.zeros(n, dtype=bool)
     cols = {"t": np.asarray(t, dtype=np.float64)}
     for k, a in enumerate("xyz"):
         cols[f"w{a}"], cols[f"a{a}"] = gyro_dps[:, k], accel_g[:, k]
