@@ -343,9 +343,13 @@ def follow_push(socket_path: Path, version: Any, timeout_s: float = FOLLOW_S) ->
                   file=sys.stderr)
             return 1
         quiet = 0 if pushing else quiet + 1
-        if quiet >= 4:  # not pushing, and no outcome of this version: a daemon that does not report it
-            print(f"v{version}: its outcome is not in the daemon's status; see `gyrocal status`")
-            return 0
+        if quiet >= 4:
+            # not pushing, and no outcome of this version: a new session took over (the unit rebooted
+            # mid-push), so whether the unit holds it is for its read-back to say. Not a success: a
+            # rollback cut by a reboot exited 0 with the autopilot holding no set (an integrator's audit)
+            print(f"gyrocal: v{version}: its outcome is not in the daemon's status (a new session may have "
+                  "started); see `gyrocal status` for the set the unit holds", file=sys.stderr)
+            return 1
         time.sleep(0.25)
     print(f"gyrocal: v{version} still pushing after {timeout_s:.0f} s; see `gyrocal status`", file=sys.stderr)
     return 1
