@@ -276,6 +276,34 @@ def test_a_link_stopped_mid_push_lets_the_push_end_first(tmp_path: Path) -> None
                 link.stop()
 
 
+def test_a_board_rotation_changed_while_idle_starts_a_new_session(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ground station writes AHRS_ORIENTATION between pushes: the samples are then in a new body
+    frame, and nothing was said (the next set was pushed 14 s later: an integrator's audit). The idle
+    check reads it; the link declares a new boot, so the daemon starts a new session, cold
+    (capabilities.frame_changed), and a write of the old session's set meanwhile is refused."""
+    from gyrocal.mavlink import link as link_mod
+    from gyrocal.mavlink.paramtx import ParamSet
+    from gyrocal.mavlink.profiles import INT8, encode_param
+
+    monkeypatch.setattr(link_mod, "CHECK_EVERY_S", 1.0)
+    with sim("ardupilot", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            first = col.of(Hello)[0]
+            assert link.capabilities.board_rotation == {"AHRS_ORIENTATION": 0.0}
+            with link._write_lock:
+                link._send_param(ParamSet("AHRS_ORIENTATION", encode_param(8.0, INT8, False), INT8))
+            assert wait_for(lambda: len(col.of(Hello)) == 2, 15)
+            again = col.of(Hello)[1]
+            assert again.serial == first.serial and again.boot_count == first.boot_count + 1
+            assert link.capabilities.board_rotation == {"AHRS_ORIENTATION": 8.0}
+            assert read_status(tmp_path / "ap.json")["boot"] == 1  # the autopilot did not reboot
+        finally:
+            link.stop()
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

@@ -170,6 +170,18 @@ def test_the_boot_gate_holds_each_request_until_the_clock_is_seen_and_the_ack_to
     assert "cannot be told" in late.outcome.reason
 
 
+def test_a_rotation_other_than_the_hello_s_refuses_the_push_before_any_write() -> None:
+    """The set was learnt under the rotation the link saw at HELLO; read otherwise in the context, the
+    push writes nothing (a resend of a set learnt in the old frame was written in the new one and
+    acked: 336-1904 deg/h left, an integrator's audit)."""
+    profile = ArduPilot(0)
+    srv = Server(profile, {"INS_TCAL1_ENABLE": 1.0, "INS_GYR1_CALTEMP": 30.0, "AHRS_ORIENTATION": 8.0})
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0, expect_rotation={"AHRS_ORIENTATION": 0.0})
+    srv.pump(push)
+    assert push.finished and not push.outcome.ok and push.outcome.nak == NakReason.BUSY
+    assert "board rotation changed" in push.outcome.reason and not srv.sets
+
+
 def test_an_unknown_parameter_fails_with_a_clear_error() -> None:
     profile = ArduPilot(0)
     srv = Server(profile, {})

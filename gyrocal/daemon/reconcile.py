@@ -118,20 +118,19 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
                          f"the unit holds v{version}, which this store does not know "
                          "(written by another host?)")
     status = str(rec.push.get("status"))
-    if crc is not None and record_crc(rec) != crc and own_boot_bias and report is not None \
-            and status in APPLIED_STATUSES:
+    bias = None
+    if crc is not None and record_crc(rec) != crc and own_boot_bias and report is not None:
         bias = own_bias_of(rec, report)
-        if bias is not None:
-            dph = "/".join(f"{b * 3600:.3g}" for b in bias)
-            return Agreement(version, crc, status, True,
-                             f"the unit holds v{version}, as the store says, with the constant its own "
-                             f"gyro calibration measured at boot ({dph} deg/h from the stored one)",
-                             [round(float(b) * 3600, 3) for b in bias])
-    if crc is None or record_crc(rec) != crc:
+    own = None if bias is None else [round(float(b) * 3600, 3) for b in bias]
+    boot_note = "" if own is None else (
+        ", with the constant its own gyro calibration measured at boot ("
+        + "/".join(f"{b:.3g}" for b in own) + " deg/h from the stored one)")
+    if bias is None and (crc is None or record_crc(rec) != crc):
         return Agreement(version, crc, status, False,
                          f"the unit holds a v{version} whose CRC differs from the stored v{version}")
     if status in APPLIED_STATUSES:
-        return Agreement(version, crc, status, True, f"the unit holds v{version}, as the store says")
+        return Agreement(version, crc, status, True,
+                         f"the unit holds v{version}, as the store says{boot_note}", own)
     history = list(rec.push.get("history") or [])
     history.append({"status": status, "reasons": rec.push.get("reasons"), "until_utc": utc_now()})
     try:
@@ -144,7 +143,8 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
     log.warning("unit %d holds v%d although its push ended %r: recorded as applied (ack lost)",
                 serial, version, status)
     return Agreement(version, crc, "applied_ack_lost", True,
-                     f"the unit holds v{version}; its push had ended {status!r}: now applied (ack lost)")
+                     f"the unit holds v{version}; its push had ended {status!r}: now applied (ack lost)"
+                     f"{boot_note}", own)
 
 
 def close_abandoned(store: CalibrationStore) -> int:

@@ -61,6 +61,8 @@ CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE = 511, 512
 TEMP_RATE_HZ = 10.0
 STREAM_STALL_S = 1.0
 """IMU silence [s] with heartbeats present after which the stream is requested again."""
+CHECK_EVERY_S = 10.0
+"""[s] How often an idle link reads the autopilot's parameters again (board rotation, compensation)."""
 FRESH_S = 0.25
 """[s] A push sends its next parameter request only after an IMU sample newer than the last answer
 and younger than this (at least 5 sample periods): the autopilot's clock seen running."""
@@ -119,6 +121,7 @@ class MavlinkLink(UnitRequests, Link):
         self._mav_stats = {"frames": 0, "bytes": 0, "bad_frames": 0}
         self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
         self._cut_push: tuple[CoeffWrite, dict[str, float]] | None = None  # a push cut short, its target
+        self._kept_boot_params: dict[str, float] | None = None  # the real boot's, over a declared one
         self._reset_boot()
 
     def stop(self, timeout_s: float = 2.0) -> None:
@@ -280,6 +283,9 @@ class MavlinkLink(UnitRequests, Link):
         self._t_last: float | None = None
         self._imu_rx: float | None = None  # monotonic time of the last IMU message
         self._imu_n = 0  # IMU messages of this boot
+        self._hello_rotation: dict[str, float] | None = None  # the board rotation at this boot's HELLO
+        self._checked_at = 0.0  # monotonic time of the last idle re-read of the parameters
+        self._check_read = False  # the read running is an idle check (its failure is not a fault)
         self._echo_n = 0  # _imu_n at the push's last PARAM_VALUE
         self._asked_again: float = 0.0
         self._seq = 0
@@ -287,14 +293,24 @@ class MavlinkLink(UnitRequests, Link):
         self._range: list[float] | None = None
         self._boot = imu_mod.BootDetector(self.heartbeat_timeout_s)
 
-    def _new_boot(self, out: list[Any], why: str) -> None:
-        log.info("mavlink %s: new boot detected (%s)", self.url, why)
+    def _new_boot(self, out: list[Any], why: str, real: bool = True) -> None:
+        """A new boot: everything per boot is read again and a new HELLO said. ``real=False``: the
+        autopilot did not reboot, but its board rotation changed, so the samples are in a new body
+        frame and the daemon must start a new session (cold, capabilities.frame_changed); the
+        parameters as they were at the real boot's start (a PX4's TC_G_ENABLE) are kept."""
+        log.info("mavlink %s: new boot %s (%s)", self.url, "detected" if real else "declared", why)
         if self._push is not None:
-            self._push.abort(f"the autopilot rebooted ({why})")
+            self._push.abort(f"the autopilot rebooted ({why})" if real else why)
             self._finish_push(out)
         keep_target, keep_profile = self.target_system, self.profile
+        keep_boot = None if real else self._boot_params
+        keep_stream = (self._source, self._t_last, self._imu_rx) if not real else None
         self._reset_boot()
         self.target_system, self.profile = keep_target, keep_profile
+        if not real:
+            self._kept_boot_params = keep_boot  # taken as this boot's once its read is done (_after_read)
+            self._source, self._t_last, self._imu_rx = keep_stream  # type: ignore[misc]
+            self._boot.last_t = self._t_last
         if self.fault is not None:
             # a fault of the last boot (a read cut off when the autopilot vanished mid-push) is judged
             # again on this boot's reads: kept, the link never said HELLO again and the daemon sat in
@@ -478,6 +494,13 @@ class MavlinkLink(UnitRequests, Link):
                 self._after_read(out)
         if self._hello is None and self._ready():
             self._say_hello(out)
+        elif (self._hello is not None and self._push is None and self._reader is None
+              and self.fault is None and now - self._checked_at > CHECK_EVERY_S):
+            # read the parameters again while idle: a ground station may have changed the board
+            # rotation (the samples then come in a new body frame) or the compensation itself
+            self._checked_at, self._check_read = now, True
+            self._reader = ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
+                                        timeout_s=self.param_timeout_s, retries=self.param_retries)
 
     def _clock_seen(self, now: float) -> bool:
         """The push's boot gate: an IMU sample arrived after the autopilot's last answer, recently,
@@ -518,6 +541,8 @@ class MavlinkLink(UnitRequests, Link):
         self._hello = Hello(
             self.serial, imu_mod.fw_text(v.flight_sw_version), boots, int(round(self.rate_hz))
         )
+        self._hello_rotation = self.board_rotation
+        self._checked_at = time.monotonic()
         log.info(
             "mavlink %s: %s unit %d (uid %x, IMU %d), boot %d, reboot needed for a push: %s",
             self.url,

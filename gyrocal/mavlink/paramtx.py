@@ -217,8 +217,12 @@ class ParamPush:
         retries: int = 4,
         gate: Callable[[float], bool] | None = None,
         hold_max_s: float = 5.0,
+        expect_rotation: Mapping[str, float] | None = None,
     ) -> None:
         self.profile = profile
+        self.expect_rotation = None if expect_rotation is None else dict(expect_rotation)
+        """The board rotation the set was learnt under (the link's HELLO): another one read in the
+        context refuses the push before any write, since the set would be written in a wrong frame."""
         self.q = np.asarray(q_dps, dtype=np.float64)
         self.tmin, self.tmax = float(tmin), float(tmax)
         self.gate = gate
@@ -310,6 +314,10 @@ class ParamPush:
                     False, why, NakReason.OUT_OF_RANGE if "offset" in why else NakReason.UNKNOWN_TERMS
                 )
             self.rotation = {k: self.before.get(k) for k in p.rotation_names(self.before)}  # type: ignore[misc]
+            if self.expect_rotation is not None and self.rotation != self.expect_rotation:
+                return self._finish(False, f"the board rotation changed since the autopilot said HELLO "
+                                    f"({self.expect_rotation} -> {self.rotation}): the set was learnt in "
+                                    "the old frame; nothing written", NakReason.BUSY)
             self.target = p.to_params(self.q, self.before, self.tmin, self.tmax)
             self._go(Phase.DISABLE, [_Op(p.enable.name, 0.0)], now)
         elif err and self.phase in (Phase.DISABLE, Phase.WRITE, Phase.VERIFY, Phase.ENABLE) and (

@@ -99,6 +99,7 @@ class UnitRequests:
             timeout_s=self.param_timeout_s,
             retries=self.param_retries,
             gate=self._clock_seen,
+            expect_rotation=self._hello_rotation,
         )
 
     def _refuse(self: MavlinkLink, msg: CoeffWrite) -> tuple[str, NakReason]:
@@ -144,7 +145,9 @@ class UnitRequests:
             self._params = {**self._params, **res.params}
         self._adj = None
         self._cut_push = None
-        if res.ok and self.profile is not None:
+        moved = (self.profile is not None and self._hello_rotation is not None and res.params
+                 and self.profile.rotation_of(res.params) != self._hello_rotation)
+        if res.ok and self.profile is not None and not moved:
             self._remember(write, res.params, res.target)
             rep = self._reported(self._params)
             ack = CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps))
@@ -165,7 +168,7 @@ class UnitRequests:
                 "mavlink %s: push of v%d failed: %s (%s)",
                 self.url,
                 write.version,
-                res.reason,
+                res.reason or "the board rotation changed during the push",
                 "previous set restored" if res.restored else "compensation left as read back",
             )
             nak = CoeffNak(
@@ -174,6 +177,8 @@ class UnitRequests:
                 res.nak or int(NakReason.BUSY),
             )
             out.extend([nak] * answers)
+        if moved:
+            self._check_rotation(out)  # a new session, cold: no resend of a set of the old frame
 
     def _remember(self: MavlinkLink, write: CoeffWrite, params: dict[str, float],
                   target: dict[str, float]) -> None:
@@ -214,7 +219,12 @@ class UnitRequests:
 
     def _after_read(self: MavlinkLink, out: list[Any]) -> None:
         reader, self._reader = self._reader, None
+        check, self._check_read = self._check_read, False
         if reader is None or self.profile is None:
+            return
+        if reader.error and check:
+            log.debug("mavlink %s: idle parameter check failed (%s); next in %.0f s", self.url,
+                      reader.error, 10.0)
             return
         if reader.error:
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
@@ -222,11 +232,14 @@ class UnitRequests:
         self._params = dict(reader.values)
         self._adj = None
         if self._boot_params is None:
-            self._boot_params = dict(reader.values)
+            kept, self._kept_boot_params = self._kept_boot_params, None
+            self._boot_params = kept if kept is not None else dict(reader.values)
         cut = self._cut_push
         if cut is not None and hasattr(self, "serial"):
             write, target = cut
-            whole = all(self._params.get(k) == v for k, v in target.items())
+            # what identifies a set across boots (an ArduPilot re-measures INS_GYROFFS and CALTEMP)
+            keys = [k for k in self.profile.durable if k in target]
+            whole = bool(keys) and all(self._params.get(k) == target[k] for k in keys)
             if whole and self.profile.is_enabled(self._params):
                 # its ENABLE = 1 landed before the cut (the echo was lost to a reboot): the autopilot holds
                 # the whole set, so it is reported as that version and the daemon records it applied
@@ -246,6 +259,25 @@ class UnitRequests:
         if self._report_wanted:
             self._report_wanted = False
             out.append(self._reported(self._params))
+        self._check_rotation(out)
+
+    def _check_rotation(self: MavlinkLink, out: list[Any]) -> None:
+        """The board rotation read now against this boot's HELLO's: changed, the samples are in another
+        body frame, so the link declares a new boot and the daemon starts a new session, cold.
+
+        Why: a ground station writing AHRS_ORIENTATION during a push got the push NAKed, then the
+        daemon's resend of the same set (learnt in the old frame) was written in the new one and
+        acked: y and z compensated with the wrong sign, 336-1904 deg/h left; changed between pushes,
+        nothing was said and the next set was pushed 14 s later (an integrator's audit)."""
+        if self._hello is None or self._hello_rotation is None or self.profile is None:
+            return
+        now_rot = self.board_rotation
+        if now_rot is None or now_rot == self._hello_rotation:
+            return
+        log.warning("mavlink %s: the board rotation changed (%s -> %s): the samples are in a new body "
+                    "frame, and no set learnt in the old one is pushed; a new session starts", self.url,
+                    self._hello_rotation, now_rot)
+        self._new_boot(out, "the board rotation changed", real=False)
 
     def _adjust(self: MavlinkLink, temp_c: float) -> np.ndarray:
         """What the autopilot subtracts minus what we report it subtracts, at temp_c [deg/s].
