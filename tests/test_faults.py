@@ -312,3 +312,11 @@ def test_a_unit_measuring_its_own_boot_bias_holds_the_stored_set_not_a_foreign_o
     assert "did not write" in foreign.note
     assert reconcile(store, 9, 0, None, CoeffReport(0, TEMP_POLY3_ID, [[0.0] * 4] * 3)).note == (
         "the unit holds no set (version 0)")
+    # a push cut short (a reboot right after its ENABLE = 1): the record says 'abandoned', the unit
+    # holds the set with its boot's constant; it is the set, applied with its ack lost
+    rec = store.add(CalibrationRecord(serial=9, version=0, terms=["1", "temp", "temp^2"],
+                                      coefficients_dps=coeffs, uncertainty_dps=[[None] * 3] * 3,
+                                      push={"status": "abandoned"}))
+    cut = agree(report(0.002), own=True)
+    assert cut["agree"] and cut["store_status"] == "applied_ack_lost" and cut["own_bias_dph"] == [7.2] * 3
+    assert store.get(9, rec.version).push["status"] == "applied_ack_lost"
