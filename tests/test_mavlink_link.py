@@ -304,6 +304,36 @@ def test_a_board_rotation_changed_while_idle_starts_a_new_session(tmp_path: Path
             link.stop()
 
 
+def test_a_rollback_goes_back_with_the_range_its_version_was_written_with(tmp_path: Path) -> None:
+    """The range seen widens as the board warms; v5 written over the first range, pushed again later
+    (a rollback), went back with the wider TMIN/TMAX: extrapolated, where the autopilot clamps
+    (an integrator's audit). A version the autopilot held keeps its own range."""
+    with sim("ardupilot", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck), 15)
+            assert wait_for(lambda: read_status(tmp_path / "ap.json")["params"]["INS_TCAL1_ENABLE"] == 1, 5)
+            first = {k: read_status(tmp_path / "ap.json")["params"][k] for k in ("INS_TCAL1_TMIN",
+                                                                                 "INS_TCAL1_TMAX")}
+            link.state.widen(link.serial, first["INS_TCAL1_TMIN"] - 5.0, first["INS_TCAL1_TMAX"] + 5.0)
+            link.send(CoeffWrite(6, TEMP_POLY3_ID, Q * 1.01))
+            assert wait_for(lambda: len(col.of(CoeffAck)) == 2, 15)
+            def tmax_near(v: float, tol: float = 0.01) -> bool:
+                return wait_for(lambda: abs(read_status(tmp_path / "ap.json")["params"]["INS_TCAL1_TMAX"] - v)
+                                < tol, 5)
+
+            assert tmax_near(first["INS_TCAL1_TMAX"] + 5.0, tol=0.15)  # v6: the widened range
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))  # the rollback
+            assert wait_for(lambda: len(col.of(CoeffAck)) == 3, 15)
+            assert tmax_near(first["INS_TCAL1_TMAX"])
+            assert read_status(tmp_path / "ap.json")["params"]["INS_TCAL1_TMIN"] == first["INS_TCAL1_TMIN"]
+        finally:
+            link.stop()
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

@@ -120,7 +120,9 @@ class MavlinkLink(UnitRequests, Link):
         self._config_fault: str | None = None  # a fault of the unit's parameters, cleared when fixed
         self._mav_stats = {"frames": 0, "bytes": 0, "bad_frames": 0}
         self._extra = {"push_gap_samples": 0, "no_temperature_samples": 0, "boots_seen": 0}
-        self._cut_push: tuple[CoeffWrite, dict[str, float]] | None = None  # a push cut short, its target
+        self._cut_push: tuple[CoeffWrite, dict[str, float], tuple[float, float]] | None = None
+        """A push cut short: its write, target parameters and range [degC] (_after_read)."""
+        self._push_range: tuple[float, float] | None = None  # TMIN, TMAX of the push running [degC]
         self._kept_boot_params: dict[str, float] | None = None  # the real boot's, over a declared one
         self._reset_boot()
 

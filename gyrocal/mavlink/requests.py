@@ -85,6 +85,15 @@ class UnitRequests:
             out.append(CoeffNak(msg.version, crc, int(reason)))
             return
         lo, hi = self._temp_bounds()
+        kept = (self.state.unit(self.serial).get("ranges") or {}).get(str(msg.version))
+        if isinstance(kept, list) and len(kept) == 2 and self.tmin_c is None and self.tmax_c is None:
+            # a version the autopilot held before (a rollback) goes back with the range it was learnt
+            # over: the range seen since had widened, and v1 of 22.4-38.0 degC went back with TMAX 44.8,
+            # extrapolated (an integrator's audit)
+            lo, hi = float(kept[0]), float(kept[1])
+            log.info("mavlink %s: v%d goes back with its own range, %.1f..%.1f degC", self.url,
+                     msg.version, lo, hi)
+        self._push_range = (lo, hi)
         self._push_write = msg
         self._reader = None
         q = np.zeros((3, 4))
@@ -148,7 +157,7 @@ class UnitRequests:
         moved = (self.profile is not None and self._hello_rotation is not None and res.params
                  and self.profile.rotation_of(res.params) != self._hello_rotation)
         if res.ok and self.profile is not None and not moved:
-            self._remember(write, res.params, res.target)
+            self._remember(write, res.params, res.target, self._push_range)
             rep = self._reported(self._params)
             ack = CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps))
             out.extend([ack] * answers)
@@ -163,7 +172,7 @@ class UnitRequests:
             if not res.restored and res.target:
                 # cut short (a reboot, silence): the autopilot may hold the whole set all the same, its
                 # ENABLE = 1 written before the cut; the next read tells (_after_read)
-                self._cut_push = (write, dict(res.target))
+                self._cut_push = (write, dict(res.target), self._push_range)
             log.error(
                 "mavlink %s: push of v%d failed: %s (%s)",
                 self.url,
@@ -181,10 +190,17 @@ class UnitRequests:
             self._check_rotation(out)  # a new session, cold: no resend of a set of the old frame
 
     def _remember(self: MavlinkLink, write: CoeffWrite, params: dict[str, float],
-                  target: dict[str, float]) -> None:
-        """The autopilot holds ``write``'s set: keep its version with the parameters that identify it."""
-        assert self.profile is not None
+                  target: dict[str, float], rng: tuple[float, float] | None = None) -> None:
+        """The autopilot holds ``write``'s set: keep its version with the parameters that identify it,
+        and the range [degC] it was written with (a rollback writes it again with that range)."""
+        if self.profile is None:
+            return
         u = self.state.unit(self.serial)
+        if rng is not None:
+            ranges = u.setdefault("ranges", {})
+            ranges.setdefault(str(write.version), [float(rng[0]), float(rng[1])])
+            for old in sorted(ranges, key=int)[:-50]:  # bounded: the last 50 versions
+                del ranges[old]
         rotation = self.profile.rotation_of(params)  # the frame the set was written in
         u.update(
             version=write.version,
@@ -236,7 +252,7 @@ class UnitRequests:
             self._boot_params = kept if kept is not None else dict(reader.values)
         cut = self._cut_push
         if cut is not None and hasattr(self, "serial"):
-            write, target = cut
+            write, target, rng = cut
             # what identifies a set across boots (an ArduPilot re-measures INS_GYROFFS and CALTEMP)
             keys = [k for k in self.profile.durable if k in target]
             whole = bool(keys) and all(self._params.get(k) == target[k] for k in keys)
@@ -246,7 +262,7 @@ class UnitRequests:
                 # (ack lost), instead of "a set gyrocal did not write" (a PX4 rebooting at the 18th write)
                 log.info("mavlink %s: the autopilot holds v%d whole although its push was cut short",
                          self.url, write.version)
-                self._remember(write, self._params, target)
+                self._remember(write, self._params, target, rng)
             self._cut_push = None
         why = self.profile.problem(self._params)
         if why:
