@@ -334,6 +334,36 @@ def test_a_rollback_goes_back_with_the_range_its_version_was_written_with(tmp_pa
             link.stop()
 
 
+def test_a_vehicle_armed_mid_push_gets_no_further_write(tmp_path: Path) -> None:
+    """The push wrote the set to the end and acked it while the vehicle was armed (an integrator's
+    audit). Armed mid-push, the link writes nothing more and NAKs BUSY (a resend is refused while
+    armed, as at any push start)."""
+    from gyrocal.mavlink.paramtx import ParamPush, ParamSet
+    from gyrocal.mavlink.profiles import ArduPilot
+
+    class Heartbeat:
+        autopilot, base_mode = 3, 128  # ArduPilot, MAV_MODE_FLAG_SAFETY_ARMED
+
+        def get_srcComponent(self) -> int:
+            return 1
+
+        def get_srcSystem(self) -> int:
+            return 1
+
+    sent: list[object] = []
+    link = MavlinkLink("udpin:127.0.0.1:0", RingBuffer(1 << 10), lambda m: None, state_file=None,
+                       autopilot="ardupilot")
+    link.target_system, link.serial = 1, 42
+    link._boot.last_hb, link._stream_asked_at = 0.0, 0.0
+    link._push = ParamPush(ArduPilot(0), Q, 20.0, 50.0, sent.append, 0.0)
+    link._push_write, link._push_range = CoeffWrite(5, TEMP_POLY3_ID, Q), (20.0, 50.0)
+    out: list[object] = []
+    link._on_heartbeat(Heartbeat(), 0.5, out)
+    assert link._push is None and [type(m) for m in out] == [CoeffNak] and out[0].reason == NakReason.BUSY
+    assert not [m for m in sent if isinstance(m, ParamSet)]  # nothing written
+    assert link.armed
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

@@ -367,7 +367,14 @@ class MavlinkLink(UnitRequests, Link):
             return
         if self.profile is None:
             self.profile = PROFILES[seen](self.instance)
-        self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+        was_armed, self.armed = self.armed, bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+        if self.armed and not was_armed and self._push is not None and not self._push.finished:
+            # armed mid-push: no further write, so compensation is not changed in flight from here on
+            # (it wrote the set to the end and acked it while armed: an integrator's audit). What the
+            # autopilot holds is read back; the daemon's resend is refused until it is disarmed.
+            self._push.abort("the vehicle armed during the push: no further write in flight; "
+                             "compensation left as it was when it armed")
+            self._finish_push(out)
         if self._boot.on_heartbeat(now):
             self._new_boot(out, "heartbeat returned after silence")
         if self._stream_asked_at is None:
