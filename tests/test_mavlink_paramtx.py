@@ -182,6 +182,32 @@ def test_a_rotation_other_than_the_hello_s_refuses_the_push_before_any_write() -
     assert "board rotation changed" in push.outcome.reason and not srv.sets
 
 
+def test_a_late_echo_answering_the_final_read_is_read_again_not_a_failure() -> None:
+    """PARAM_VALUE carries no request id: the DISABLE echo that came 1-2 s late answered the final
+    read of ENABLE with 0, and the push failed (a spurious CRC mismatch before the retry acked: an
+    audit). The final read-back is read once more before the set is called different."""
+    profile = ArduPilot(0)
+    srv = Server(profile, {"INS_TCAL1_ENABLE": 1.0, "INS_GYR1_CALTEMP": 30.0})
+    push = ParamPush(profile, Q, 20.0, 50.0, srv.send, 0.0)
+    stale = {"left": 1}
+    real_pump = srv.pump
+
+    def pump(push, limit=None):  # noqa: ANN001, ANN202
+        while srv.inbox:
+            req = srv.inbox[0]
+            if (isinstance(req, ParamRead) and req.name == "INS_TCAL1_ENABLE" and stale["left"]
+                    and srv.sets.count("INS_TCAL1_ENABLE") == 2):
+                srv.inbox.pop(0)
+                stale["left"] -= 1
+                ptype = srv.types[req.name]
+                push.on_value(req.name, encode_param(0.0, ptype, False), ptype, 0.0)
+                continue
+            real_pump(push, limit=1)
+
+    pump(push)
+    assert push.finished and push.outcome.ok and stale["left"] == 0
+
+
 def test_an_unknown_parameter_fails_with_a_clear_error() -> None:
     profile = ArduPilot(0)
     srv = Server(profile, {})

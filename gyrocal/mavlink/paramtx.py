@@ -228,6 +228,7 @@ class ParamPush:
         self.gate = gate
         self.io = OpRunner(profile, send, timeout_s, retries, gate, hold_max_s)
         self._confirm_since = 0.0
+        self._read_again = False  # the final read-back was read a second time
         self.phase = Phase.READ_CONTEXT
         self.outcome: PushOutcome | None = None
         self.before: dict[str, float] = {}
@@ -373,6 +374,12 @@ class ParamPush:
             ok = p.is_enabled(self.io.values) and all(
                 self.io.values.get(k) == v for k, v in self.target.items()
             )
+            if not ok and not self._read_again:
+                # an echo that came late (1-2 s) answers the read that follows it: read once more
+                # before calling the set different (a spurious failure and CRC mismatch: an audit)
+                self._read_again = True
+                self._go(Phase.READ_BACK, [_Op(x.name) for x in p.all_params()], now)
+                return
             if ok:
                 self.phase, self._confirm_since = Phase.CONFIRM, now
                 return self._confirm(now)
