@@ -239,8 +239,8 @@ class UnitRequests:
         if reader is None or self.profile is None:
             return
         if reader.error and check:
-            log.debug("mavlink %s: idle parameter check failed (%s); next in %.0f s", self.url,
-                      reader.error, 10.0)
+            log.debug("mavlink %s: idle parameter check failed (%s); tried again later", self.url,
+                      reader.error)
             return
         if reader.error:
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
