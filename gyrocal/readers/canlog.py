@@ -37,7 +37,10 @@ def _partial_last_line(path: str) -> int:
         return 0
     if not tail or tail.endswith(b"\n") or b"\0" in tail:
         return 0
-    return len(tail) - (tail.rfind(b"\n") + 1)
+    last = tail[tail.rfind(b"\n") + 1:]
+    if not last.strip() or last.strip().lower().startswith(b"end"):  # an .asc trailer, not a frame
+        return 0
+    return len(last)
 
 
 class CanRecording:
