@@ -225,6 +225,12 @@ class UnitRequests:
             if target and all(params.get(k) == v for k, v in target.items()):
                 # exactly what was written, in its own term set (the unit holds its float32 rounding)
                 return CoeffReport(version, int(u.get("terms_id", TEMP_POLY3_ID)), u["coeffs"])
+            # our set with a constant the autopilot re-measured (ArduPilot's boot gyro calibration): in
+            # its own shorter term set when the powers it lacks are zero, as it was written
+            tid = int(u.get("terms_id", TEMP_POLY3_ID))
+            n = len(self.term_sets.get(tid, ())) or q.shape[1]
+            if n < q.shape[1] and not np.any(q[:, n:]):
+                return CoeffReport(version, tid, q[:, :n])
         return CoeffReport(version, TEMP_POLY3_ID, q)
 
     def reboot(self: MavlinkLink) -> None:
