@@ -95,7 +95,7 @@ class UnitRequests:
                      msg.version, lo, hi)
         self._push_range = (lo, hi)
         self._push_write = msg
-        self._reader = None
+        self._reader, self._check_read = None, False  # a running read (an idle check) gives way
         q = np.zeros((3, 4))
         q[:, : len(msg.coeffs_dps[0])] = np.asarray(msg.coeffs_dps)  # a shorter prefix: higher powers 0
         self._push = ParamPush(
