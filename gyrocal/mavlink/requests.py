@@ -244,7 +244,7 @@ class UnitRequests:
         check, self._check_read = self._check_read, False
         if reader is None or self.profile is None:
             return
-        if reader.error and check:
+        if reader.error and check and not self._report_wanted:  # a COEFF_READ waiting: its error stands
             log.debug("mavlink %s: idle parameter check failed (%s); tried again later", self.url,
                       reader.error)
             return
