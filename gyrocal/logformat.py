@@ -312,8 +312,17 @@ def _slow_body(rest: str, width: int, header_line: int, header: list[str], name:
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(keep)), skipped
 
 
+def check_session_column(s: np.ndarray, name: str) -> None:
+    """``session`` is a switch-on index: a whole number >= 0 (1.5 and -1 were taken as sessions)."""
+    bad = np.flatnonzero((s < 0) | (s != np.round(s)))
+    if bad.size:
+        raise LogFormatError(f"{name}: data row {int(bad[0]) + 1}: column 'session' is {float(s[bad[0]]):g}; "
+                             "it is the switch-on index, a whole number 0, 1, 2, ... (docs/logformat.md)")
+
+
 def _check_time_order(columns: Mapping[str, np.ndarray], name: str) -> None:
     t, s = columns["t"], columns["session"]
+    check_session_column(s, name)
     same = s[1:] == s[:-1]
     back = np.flatnonzero(same & (np.diff(t) < 0))
     if back.size:

@@ -383,3 +383,20 @@ def test_a_kelvin_temperature_and_a_column_typo_are_said(tmp_path: Path) -> None
     assert any("looks like a time column in ms" in w for w in read_log(f).warnings)
     with pytest.raises(ConfigError, match="'tmp' is not one of our columns"):
         options_from_args(Namespace(columns="t=time,tmp=temp_K", units=None))
+
+
+def test_a_session_that_is_not_a_whole_number_is_refused(tmp_path: Path) -> None:
+    """`session` is the switch-on index; 1.5 and -1 were taken as sessions (a foreign-log audit)."""
+    from gyrocal.readers import ReadOptions, read_any
+
+    n = 20
+    cols = {"t": np.arange(n) * 0.01, "wx": np.zeros(n), "wy": np.zeros(n), "wz": np.zeros(n),
+            "ax": np.zeros(n), "ay": np.zeros(n), "az": np.ones(n), "session": np.full(n, 1.5)}
+    for bad in (1.5, -1.0):
+        cols["session"] = np.full(n, bad)
+        f = tmp_path / "s.csv"
+        write_log(f, cols)
+        with pytest.raises(LogFormatError, match="column 'session'"):
+            read_log(f)
+        with pytest.raises(LogFormatError, match="column 'session'"):
+            read_any(str(f), None, ReadOptions())

@@ -21,6 +21,7 @@ from gyrocal.logformat import (
     _fast_body,
     _numeric_columns,
     _slow_body,
+    check_session_column,
     read_header,
 )
 from gyrocal.readers.units import (
@@ -100,6 +101,7 @@ class CsvStream:
         t, s = cols["t"], cols["session"]
         if t.size == 0:
             return
+        check_session_column(s, self.path)
         back = bool(np.any((s[1:] == s[:-1]) & (np.diff(t) < 0)))
         if prev and s[0] == prev[0] and t[0] < prev[1]:
             back = True
