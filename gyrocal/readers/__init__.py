@@ -126,7 +126,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the units the log holds, e.g. gyro=rad/s,accel=m/s^2,temp=K,time=ms "
                         "(default: its '# units:' line, else deg/s, g, degC, s)")
     g.add_argument("--instance", type=int, default=0, metavar="N",
-                   help="which IMU of several in a .ulg, .bin or .tlog; a CAN log: the unit's node id (default 0)")
+                   help="which IMU of several in a .ulg, .bin or .tlog; a CAN log: the unit's node id "
+                        "(default 0)")
     g.add_argument("--topic", metavar="NAME",
                    help="ULog topic (sensor_gyro_fifo, sensor_gyro or sensor_combined) or ROS Imu topic "
                         "(default: found)")
