@@ -364,6 +364,30 @@ def test_a_vehicle_armed_mid_push_gets_no_further_write(tmp_path: Path) -> None:
     assert link.armed
 
 
+def test_a_push_cut_by_a_reboot_puts_back_the_set_held_before(tmp_path: Path) -> None:
+    """v4 is held and enabled; the push of v5 writes ENABLE = 0, then the PX4 reboots at its 23rd
+    PARAM_SET (v4 took 18: DISABLE, 16 parameters, ENABLE). It booted with its compensation off and
+    part of v5, worse than before the push (a re-audit). The link writes v4 back before the new
+    boot's HELLO: the new session reads v4, waiting for the next reboot."""
+    with sim("px4", tmp_path, "--reboot-after-sets", "23") as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", param_timeout_s=0.5)
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck), 15)
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
+            assert wait_for(lambda: col.of(CoeffNak), 20)
+            assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
+            assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0)
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 10)
+            rep = col.of(CoeffReport)[0]
+            assert rep.version == 4 and np.allclose(rep.coeffs_dps, Q) and link.reboot_required is True
+        finally:
+            link.stop()
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

@@ -36,7 +36,7 @@ from gyrocal.drivers.base import ControlCallback, EventCallback, Link
 from gyrocal.errors import LinkError
 from gyrocal.mavlink import imu as imu_mod
 from gyrocal.mavlink import pymav
-from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamSet
+from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamRestore, ParamSet
 from gyrocal.mavlink.profiles import BY_MAV_AUTOPILOT, PROFILES, Profile
 from gyrocal.mavlink.requests import UnitRequests
 from gyrocal.mavlink.state import LinkState
@@ -278,6 +278,7 @@ class MavlinkLink(UnitRequests, Link):
         self._push: ParamPush | None = None
         self._push_write: CoeffWrite | None = None
         self._push_repeats = 0  # resends of the running push's write: each gets the push's answer
+        self._restore: ParamRestore | None = None  # the set held before a push a reboot cut short
         self._report_wanted = False
         self._source: str | None = None
         self._stream_asked_at: float | None = None
@@ -338,7 +339,7 @@ class MavlinkLink(UnitRequests, Link):
         if kind == "PARAM_VALUE":
             name = m.param_id if isinstance(m.param_id, str) else m.param_id.decode("ascii", "replace")
             name = name.rstrip("\x00")
-            job = self._push or self._reader
+            job = self._push or self._restore or self._reader
             if self._push is not None:
                 self._echo_n = self._imu_n
             if job is not None:
@@ -497,6 +498,20 @@ class MavlinkLink(UnitRequests, Link):
         if self._push is not None:
             self._push.tick(now)
             self._finish_push(out)
+        if self._restore is not None:
+            self._restore.tick(now)
+            if self._restore.finished:
+                done, self._restore = self._restore, None
+                self._params.update(done.io.values)  # as confirmed by the echoes, until the re-read
+                self._adj = None
+                if done.ok:
+                    log.info("mavlink %s: the set held before the cut push is back (ENABLE = 1%s)", self.url,
+                             "; a PX4 applies it at its next reboot" if self.reboot_required else "")
+                else:
+                    log.error("mavlink %s: the set held before the cut push could not be written back "
+                              "(%s): compensation stays off until the next push", self.url, done.error)
+                self._reader = ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
+                                            timeout_s=self.param_timeout_s, retries=self.param_retries)
         if self._reader is not None:
             self._reader.tick(now)
             if self._reader.finished:
@@ -531,6 +546,7 @@ class MavlinkLink(UnitRequests, Link):
             and self._boot_params is not None
             and self._t_last is not None
             and self.fault is None
+            and self._restore is None  # the new session reads what the restore leaves
         )
 
     def _say_hello(self, out: list[Any]) -> None:

@@ -455,3 +455,49 @@ class ParamReadAll:
     def tick(self, now: float) -> None:
         self.io.tick(now)
         self._more(now)
+
+
+class ParamRestore:
+    """Write back the set an autopilot held before a push that a reboot cut short.
+
+    Why: the push writes ENABLE = 0 first; cut by a reboot before its ENABLE = 1, the autopilot boots
+    with its compensation off and part of the new coefficients, worse than before the push. The
+    durable coefficients read in the push's context (``before``) are written back, each confirmed by
+    its echo, and ENABLE = 1 only when all are: the old set again (with an ArduPilot's offsets of
+    this boot), or (a write not confirmed) none.
+    """
+
+    def __init__(self, profile: Profile, before: Mapping[str, float], send: Callable[[object], None],
+                 now: float, *, timeout_s: float = 0.5, retries: int = 4) -> None:
+        self.profile = profile
+        self.io = OpRunner(profile, send, timeout_s, retries)
+        # the durable ones only: an ArduPilot's INS_GYROFFS were measured again at this boot
+        durable = set(profile.durable)
+        self._coeffs = [_Op(c.name, float(before[c.name])) for c in profile.coeffs
+                        if c.name in before and c.name in durable]
+        self._enabling = False
+        self.ok = False
+        self.io.start(self._coeffs, now)
+
+    @property
+    def finished(self) -> bool:
+        return self.io.done and (self._enabling or self.io.error is not None)
+
+    @property
+    def error(self) -> str | None:
+        return self.io.error
+
+    def _advance(self, now: float) -> None:
+        if self.io.done and self.io.error is None and not self._enabling:
+            self._enabling = True
+            self.io.start([_Op(self.profile.enable.name, 1.0)], now)
+        if self._enabling and self.io.done and self.io.error is None:
+            self.ok = True
+
+    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
+        self.io.on_value(name, wire, ptype, now)
+        self._advance(now)
+
+    def tick(self, now: float) -> None:
+        self.io.tick(now)
+        self._advance(now)

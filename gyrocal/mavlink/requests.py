@@ -10,12 +10,13 @@ Everything here runs on the link's reader thread.
 from __future__ import annotations
 
 import logging
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gyrocal.errors import LinkError
-from gyrocal.mavlink.paramtx import ParamPush, ParamReadAll
+from gyrocal.mavlink.paramtx import ParamPush, ParamReadAll, ParamRestore
 from gyrocal.mavlink.poly import evaluate
 from gyrocal.protocol.messages import (
     CoeffAck,
@@ -172,7 +173,7 @@ class UnitRequests:
             if not res.restored and res.target:
                 # cut short (a reboot, silence): the autopilot may hold the whole set all the same, its
                 # ENABLE = 1 written before the cut; the next read tells (_after_read)
-                self._cut_push = (write, dict(res.target), self._push_range)
+                self._cut_push = (write, dict(res.target), self._push_range, dict(push.before))
             log.error(
                 "mavlink %s: push of v%d failed: %s (%s)",
                 self.url,
@@ -258,7 +259,7 @@ class UnitRequests:
             self._boot_params = kept if kept is not None else dict(reader.values)
         cut = self._cut_push
         if cut is not None and hasattr(self, "serial"):
-            write, target, rng = cut
+            write, target, rng, before = cut
             # what identifies a set across boots (an ArduPilot re-measures INS_GYROFFS and CALTEMP)
             keys = [k for k in self.profile.durable if k in target]
             whole = bool(keys) and all(self._params.get(k) == target[k] for k in keys)
@@ -269,6 +270,16 @@ class UnitRequests:
                 log.info("mavlink %s: the autopilot holds v%d whole although its push was cut short",
                          self.url, write.version)
                 self._remember(write, self._params, target, rng)
+            elif (self._hello is None and before and self.profile.is_enabled(before)
+                  and not self.profile.is_enabled(self._params)):
+                # cut before its ENABLE = 1: the autopilot booted with its compensation off and part of
+                # the new coefficients, worse than before the push; the set it held then goes back
+                # before this boot's HELLO (the daemon's new session reads the result)
+                log.warning("mavlink %s: the push of v%d was cut by a reboot before its ENABLE = 1; the "
+                            "autopilot booted with its compensation off: writing back the set it held "
+                            "before", self.url, write.version)
+                self._restore = ParamRestore(self.profile, before, self._send_param, time.monotonic(),
+                                             timeout_s=self.param_timeout_s, retries=self.param_retries)
             self._cut_push = None
         why = self.profile.problem(self._params)
         if why:
