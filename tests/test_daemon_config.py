@@ -217,12 +217,13 @@ def test_a_reload_says_what_waits_for_a_restart_or_a_switch_on(tmp_path: Path, c
     path = tmp_path / "c.yaml"
     path.write_text(f"link: {{url: /dev/x}}\nstate_dir: {tmp_path / 'a'}\n")
     eng = _reload_only_engine(path)
-    path.write_text(f"link: {{url: /dev/x}}\nstate_dir: {tmp_path / 'b'}\nstill: {{k_std: 5}}\n"
+    path.write_text(f"link: {{url: /dev/y}}\nstate_dir: {tmp_path / 'b'}\nstill: {{k_std: 5}}\n"
                     "site: {latitude_deg: 48.1}\n")
     with caplog.at_level("INFO"):
         eng._reload()
     said = " | ".join(r.getMessage() for r in caplog.records)
     assert "state_dir changed" in said and "next restart" in said
+    assert "link.url '/dev/x' -> '/dev/y'" in said  # named, as every other field (it said "link settings")
     assert "still settings changed" in said and "site.latitude_deg changed to 48.1" in said
     assert eng.cfg.site["latitude_deg"] == 48.1 and eng.last_reload["ok"]
 
@@ -330,4 +331,12 @@ def test_a_field_given_twice_is_refused_with_its_line(tmp_path: Path) -> None:
     assert f"{path}:4" in str(err.value) and "'push' appears twice; keep one" in str(err.value)
     path.write_text("link: {url: /dev/x, url: /dev/y}\n")
     with pytest.raises(ConfigError, match="'url' appears twice"):
+        load_config(path)
+
+
+def test_an_empty_config_file_says_it_is_empty(tmp_path: Path) -> None:
+    """An empty file (a botched edit) was refused as "field 'link.url' is 'auto'": an operator's soak."""
+    path = tmp_path / "empty.yaml"
+    path.write_text("# nothing here\n")
+    with pytest.raises(ConfigError, match="the file is empty"):
         load_config(path)

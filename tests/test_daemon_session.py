@@ -429,3 +429,18 @@ def test_a_can_link_hearing_only_other_nodes_names_the_node_id(tmp_path: Path) -
     eng._publish(0.0)
     assert eng.status["state"] == "WAIT_UNIT"
     assert "7399 frames of other CAN nodes" in eng.status["reason"] and "can_node_id" in eng.status["reason"]
+
+
+def test_a_link_just_back_is_not_called_silent_by_the_age_of_the_sample_before_the_outage(
+    tmp_path: Path,
+) -> None:
+    """After an outage the link came up and the unit was "silent: no sample for 6 s" at once, the age
+    being that of the last sample before the outage (an operator's soak). Silence counts from the
+    connection too."""
+    eng = _engine_with_stub_link(tmp_path)
+    eng._last_sample_at = 0.0
+    eng._on_link_event("link_up", "/dev/pts/9", 10.0)
+    eng._publish(11.0)
+    assert eng.status["state"] != "UNIT_SILENT"
+    eng._publish(12.5)
+    assert eng.status["state"] == "UNIT_SILENT"

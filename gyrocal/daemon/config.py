@@ -227,6 +227,11 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     except yaml.YAMLError as err:
         raise ConfigError(yaml_error_text(name, err)) from None
     if doc is None:
+        if path is not None and not overrides:
+            # an empty file (a botched edit) was refused as "field 'link.url' is 'auto'", which did not
+            # say the file was empty (an operator's soak)
+            raise ConfigError(f"{name}: the file is empty (or only comments); write at least a link: "
+                              "section, e.g. from configs/gyrocal.example.yaml (docs/operations.md)")
         doc = {}
     if not isinstance(doc, dict):
         raise ConfigError(f"{name}: the top level must be a mapping of sections (link:, estimator:, ...)")

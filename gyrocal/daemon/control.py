@@ -396,9 +396,10 @@ class ControlServer:
             if select.select([], [fd], [], 0)[1]:
                 os.write(fd, line)
 
-    def _note(self, what: str) -> None:
-        """One WARNING per minute at most about dropped clients, with the count since the last one, so
-        that a client hammering the socket cannot flood the journal."""
+    def _note(self, what: str, level: int = logging.WARNING) -> None:
+        """One line per minute at most about dropped clients, with the count since the last one, so
+        that a client hammering the socket cannot flood the journal. An idle client (a monitor that
+        holds its connection open) is INFO: it is not a fault (an operator's soak)."""
         with self._state_lock:
             self.dropped += 1
             self._noted_count += 1
@@ -406,7 +407,7 @@ class ControlServer:
             if now - self._noted_at < 60.0:
                 return
             count, self._noted_count, self._noted_at = self._noted_count, 0, now
-        log.warning("control socket: %s (%d connection(s) dropped in the last minute)", what, count)
+        log.log(level, "control socket: %s (%d connection(s) dropped in the last minute)", what, count)
 
     def _evict_for_new(self) -> _Client | None:
         """Under _state_lock: take the connection longest without a complete request out of the table
@@ -463,7 +464,8 @@ class ControlServer:
                         left, why = client.since + CLIENT_IDLE_S - now, "no request within"
                         limit = CLIENT_IDLE_S
                     if left <= 0:
-                        self._note(f"client dropped: {why} {limit:g} s")
+                        self._note(f"client dropped: {why} {limit:g} s",
+                                   logging.INFO if not buf.strip() else logging.WARNING)
                         with contextlib.suppress(OSError):
                             conn.sendall(encode_line({"ok": False, "error": f"{why} {limit:g} s; closing"}))
                         return

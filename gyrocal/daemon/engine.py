@@ -118,6 +118,7 @@ class Engine(CommandsMixin):
         self._rate_dts: deque[float] = deque(maxlen=self.RATE_WINDOW)
         self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
         self._session_from_hello = False  # the session's start was a HELLO of the unit's (same_boot)
+        self._link_up_at: float | None = None  # when the link last came up [s, the engine's clock]
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
@@ -447,6 +448,7 @@ class Engine(CommandsMixin):
         log.log(logging.INFO if name == "link_up" else logging.WARNING, "link %s %s", name, detail)
         self._link_state = name
         if name == "link_up":
+            self._link_up_at = now
             # the unit may have kept running or rebooted: ask who it is (a new boot count starts a
             # new session) and re-read the set it holds
             self._ask_hello(now)
@@ -625,7 +627,11 @@ class Engine(CommandsMixin):
             status["still"] = self.detector.status()
             if not status.get("trained_samples") and status["still"].get("why"):
                 status["reason"] = f"{status['reason']}; {status['still']['why']}"  # why nothing is learnt
-        silent = connected and age is not None and age > SILENT_AFTER_S
+        # silent: connected and no sample for SILENT_AFTER_S of the connection (the age of the last
+        # sample before an outage made a link just back "silent for 6 s": an operator's soak)
+        up_for = now - self._link_up_at if self._link_up_at is not None else None
+        silent = (connected and age is not None and age > SILENT_AFTER_S
+                  and (up_for is None or up_for > SILENT_AFTER_S))
         if silent and getattr(self.link, "holds_samples_in_push", False) and self.session is not None \
                 and self.session.push is not None and not self.session.push.finished:
             # an autopilot's link withholds the samples while it rewrites the compensation (they would

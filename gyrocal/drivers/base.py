@@ -218,8 +218,9 @@ class Link(ABC):
                     log.exception("%s link: callback failed on %s", self.kind, type(m).__name__)
 
     def _emit(self, name: str, detail: str) -> None:
-        # every back-off round would be a line: the listener (the engine) logs state changes
-        level = logging.DEBUG if name == "reconnecting" else logging.INFO
+        # every back-off round would be a line, and the listener (the engine) logs each event once
+        # itself: with a listener, the driver's own line is DEBUG (one unplug gave four lines)
+        level = logging.DEBUG if name == "reconnecting" or self.on_event is not None else logging.INFO
         log.log(level, "%s link %s: %s", self.kind, name, detail)
         if self.on_event is None:
             return
