@@ -388,6 +388,26 @@ def test_a_push_cut_by_a_reboot_puts_back_the_set_held_before(tmp_path: Path) ->
             link.stop()
 
 
+def test_a_lost_autopilot_version_is_asked_for_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without AUTOPILOT_VERSION no HELLO is said; its answer lost on a busy pty (a full pty drops
+    bytes), the daemon waited for a HELLO forever (seen in CI under load). It is asked for again."""
+    from gyrocal.mavlink import link as link_mod
+
+    link = MavlinkLink("udpin:127.0.0.1:0", RingBuffer(1 << 10), lambda m: None, state_file=None,
+                       autopilot="ardupilot")
+    asked: list[tuple] = []
+    monkeypatch.setattr(link, "_command", lambda *a: asked.append(a))
+    link._stream_asked_at = link._version_asked_at = 0.0
+    link._reader = None
+    def version_asks() -> list[tuple]:
+        return [a for a in asked if a[0] == link_mod.CMD_REQUEST_MESSAGE]
+
+    link._tick(link_mod.VERSION_ASK_S / 2, [])
+    assert not version_asks()
+    link._tick(link_mod.VERSION_ASK_S + 0.1, [])
+    assert version_asks() == [(link_mod.CMD_REQUEST_MESSAGE, link_mod.MSG_ID["AUTOPILOT_VERSION"])]
+
+
 def test_a_wrong_autopilot_type_is_one_clear_fault(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")

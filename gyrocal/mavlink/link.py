@@ -61,6 +61,8 @@ CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE = 511, 512
 TEMP_RATE_HZ = 10.0
 STREAM_STALL_S = 1.0
 """IMU silence [s] with heartbeats present after which the stream is requested again."""
+VERSION_ASK_S = 2.0
+"""[s] AUTOPILOT_VERSION is asked for again this long after an unanswered request (before HELLO)."""
 CHECK_EVERY_S = 10.0
 """[s] How often an idle link reads the autopilot's parameters again (board rotation, compensation)."""
 FRESH_S = 0.25
@@ -282,6 +284,8 @@ class MavlinkLink(UnitRequests, Link):
         self._report_wanted = False
         self._source: str | None = None
         self._stream_asked_at: float | None = None
+        self._version_asked_at = 0.0  # when AUTOPILOT_VERSION was last asked for
+        self._read_retries = 0  # this boot's first parameter read, tried again (requests.READ_RETRIES)
         self._temp_c: float | None = None
         self._t_last: float | None = None
         self._imu_rx: float | None = None  # monotonic time of the last IMU message
@@ -388,7 +392,7 @@ class MavlinkLink(UnitRequests, Link):
         self.fault = why
 
     def _ask_identity_and_stream(self, now: float) -> None:
-        self._stream_asked_at = now
+        self._stream_asked_at = self._version_asked_at = now
         self._command(CMD_REQUEST_MESSAGE, MSG_ID["AUTOPILOT_VERSION"])
         self._ask_streams()
         self._reader = ParamReadAll(
@@ -516,6 +520,12 @@ class MavlinkLink(UnitRequests, Link):
             self._reader.tick(now)
             if self._reader.finished:
                 self._after_read(out)
+        if (self._hello is None and self._version_msg is None and self._stream_asked_at is not None
+                and now - self._version_asked_at > VERSION_ASK_S and self.profile is not None):
+            # the answer was lost (a busy link, a pty that drops bytes when full): without it no HELLO
+            # is ever said, and the daemon waited for one forever (seen in CI under load)
+            self._version_asked_at = now
+            self._command(CMD_REQUEST_MESSAGE, MSG_ID["AUTOPILOT_VERSION"])
         if self._hello is None and self._ready():
             self._say_hello(out)
         elif (self._hello is not None and self._push is None and self._reader is None

@@ -39,6 +39,10 @@ CMD_REBOOT = 246
 """MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN."""
 
 
+READ_RETRIES = 3
+"""Whole parameter reads tried again at a boot's start before a failed read is a fault."""
+
+
 class UnitRequests:
     """The request half of MavlinkLink (see the module docstring)."""
 
@@ -248,6 +252,15 @@ class UnitRequests:
         if reader.error and check and not self._report_wanted:  # a COEFF_READ waiting: its error stands
             log.debug("mavlink %s: idle parameter check failed (%s); tried again later", self.url,
                       reader.error)
+            return
+        if reader.error and self._hello is None and self._read_retries < READ_RETRIES:
+            # a boot's first read whose echoes were lost (a busy link): read again before calling it a
+            # fault, which holds until the next boot (a daemon under load never said HELLO)
+            self._read_retries += 1
+            log.info("mavlink %s: parameter read failed (%s); reading again (%d of %d)", self.url,
+                     reader.error, self._read_retries, READ_RETRIES)
+            self._reader = ParamReadAll(self.profile, self._send_param, time.monotonic(),
+                                        timeout_s=self.param_timeout_s, retries=self.param_retries)
             return
         if reader.error:
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
