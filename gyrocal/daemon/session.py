@@ -813,8 +813,8 @@ class Session(RecoveryMixin):
             why = (f"validation: new set's held-out RMS {_dph(rms_new)} deg/h is worse than the held set's "
                    f"{_dph(rms_old)} deg/h on axis {'/'.join(worse_axes)}; not pushing")
         elif not enough:
-            why = (f"validation: new set's held-out RMS {np.sqrt(new2):.3g} deg/s does not improve enough "
-                   f"on the current {np.sqrt(old2):.3g} deg/s; not pushing")
+            why = (f"validation: new set's held-out RMS {np.sqrt(new2) * DPH:.3g} deg/h (3 axes) does not "
+                   f"improve enough on the current {np.sqrt(old2) * DPH:.3g} deg/h; not pushing")
             if "wander" in self.last_validation:
                 why = why.replace("; not pushing", f" (nor significantly, beside the bias wander: "
                                   f"{self.last_validation['wander']['gain_z']:.1f} standard errors of "
@@ -1050,8 +1050,9 @@ class Session(RecoveryMixin):
                            self.cfg.monitor["alarm_floor_dps"])
         alarm = bool(np.any(rms > limit))
         if alarm and not self.alarm:
-            log.warning("unit %s: drift alarm: residual %s deg/s exceeds %s", self.hello.serial,
-                        np.round(rms, 6).tolist(), np.round(limit, 6).tolist())
+            # in deg/h, as every other drift figure of the log (an operator's soak found them mixed)
+            log.warning("unit %s: drift alarm: residual %s deg/h exceeds %s deg/h", self.hello.serial,
+                        "/".join(f"{v:.3g}" for v in rms * DPH), "/".join(f"{v:.3g}" for v in limit * DPH))
         self.alarm = alarm
 
     def _applied_coeffs(self) -> np.ndarray | None:
