@@ -209,9 +209,7 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
     from gyrocal.readers.units import (
         convert_columns,
         declared_units,
-        looks_like_si,
-        temperature_units_warning,
-        time_units_warning,
+        units_warnings,
     )
 
     declared = declared_units(metadata.get("units", ""), f"{name}: '# units:' line")
@@ -230,9 +228,7 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
             + ", ".join(f"{c} {k}" for c, k in by_column.items())
             + ("; an optional column (temp, ref_w*, ...) can be left out of the file, or filled"
                if set(by_column) - set(REQUIRED) else ""))
-    for warning in (looks_like_si(log), temperature_units_warning(log), time_units_warning(log)):
-        if warning:
-            log.warnings.append(warning)
+    log.warnings.extend(units_warnings(log))
     return log
 
 

@@ -27,9 +27,7 @@ from gyrocal.logformat import (
 from gyrocal.readers.units import (
     convert_columns,
     declared_units,
-    looks_like_si,
-    temperature_units_warning,
-    time_units_warning,
+    units_warnings,
 )
 
 BLOCK_ROWS = 1 << 16
@@ -88,11 +86,7 @@ class CsvStream:
                 convert_columns(cols, self.units)
                 self._check_order(cols, prev, lineno)
                 if self.rows == 0 and table.shape[0]:
-                    first = LogData(cols, source=name)
-                    for warning in (looks_like_si(first), temperature_units_warning(first),
-                                    time_units_warning(first)):
-                        if warning:
-                            self.warnings.append(warning)
+                    self.warnings.extend(units_warnings(LogData(cols, source=name)))
                 self.rows += table.shape[0]
                 yield cols
 

@@ -133,3 +133,10 @@ def time_units_warning(log: object) -> str | None:
             f"({1.0 / med:.3g} Hz), which looks like a time column in {guess}; if so, pass --units "
             f"time={guess} or write '# units: time={guess}' in the header (docs/logformat.md)")
 
+
+def units_warnings(log: object) -> list[str]:
+    """Every units warning for a log's columns (accel, temperature, time): what the whole-file and
+    the streaming CSV readers both add."""
+    found = (looks_like_si(log), temperature_units_warning(log), time_units_warning(log))
+    return [w for w in found if w]
+
