@@ -149,12 +149,9 @@ class CommandsMixin:
                 self.last_reload = {"utc": utc_now(), "ok": False, "error": str(err)}
             else:
                 self.last_reload = {"utc": utc_now(), "ok": True}
-                if new.link != self.cfg.link:
-                    # each field, old -> new, as every other reload line says (an operator's soak)
-                    changed = ", ".join(f"link.{k} {self.cfg.link.get(k)!r} -> {new.link.get(k)!r}"
-                                        for k in sorted(set(new.link) | set(self.cfg.link))
-                                        if new.link.get(k) != self.cfg.link.get(k))
-                    log.warning("SIGHUP: %s; link settings take effect at the next restart", changed)
+                if new.link != self.cfg.link:  # each field, old -> new, as every reload line says
+                    log.warning("SIGHUP: %s; link settings take effect at the next restart",
+                                ", ".join(_changed_fields(self.cfg, new, ("link",))))
                 for top in ("state_dir", "control_socket", "watchdog"):  # read once, at start
                     if getattr(new, top) != getattr(self.cfg, top):
                         log.warning("SIGHUP: %s changed to %s; it takes effect at the next restart", top,
