@@ -395,13 +395,12 @@ class MavlinkLink(UnitRequests, Link):
         self._stream_asked_at = self._version_asked_at = now
         self._command(CMD_REQUEST_MESSAGE, MSG_ID["AUTOPILOT_VERSION"])
         self._ask_streams()
-        self._reader = ParamReadAll(
-            self.profile,
-            self._send_param,
-            now,  # type: ignore[arg-type]
-            timeout_s=self.param_timeout_s,
-            retries=self.param_retries,
-        )
+        self._reader = self._read_all(now)
+
+    def _read_all(self, now: float) -> ParamReadAll:
+        """A read of every parameter of the profile, with this link's timeout and retries."""
+        return ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
+                            timeout_s=self.param_timeout_s, retries=self.param_retries)
 
     def _ask_streams(self) -> None:
         temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
@@ -514,8 +513,7 @@ class MavlinkLink(UnitRequests, Link):
                 else:
                     log.error("mavlink %s: the set held before the cut push could not be written back "
                               "(%s): compensation stays off until the next push", self.url, done.error)
-                self._reader = ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
-                                            timeout_s=self.param_timeout_s, retries=self.param_retries)
+                self._reader = self._read_all(now)
         if self._reader is not None:
             self._reader.tick(now)
             if self._reader.finished:
@@ -533,8 +531,7 @@ class MavlinkLink(UnitRequests, Link):
             # read the parameters again while idle: a ground station may have changed the board
             # rotation (the samples then come in a new body frame) or the compensation itself
             self._checked_at, self._check_read = now, True
-            self._reader = ParamReadAll(self.profile, self._send_param, now,  # type: ignore[arg-type]
-                                        timeout_s=self.param_timeout_s, retries=self.param_retries)
+            self._reader = self._read_all(now)
 
     def _clock_seen(self, now: float) -> bool:
         """The push's boot gate: an IMU sample arrived after the autopilot's last answer, recently,

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gyrocal.errors import LinkError
-from gyrocal.mavlink.paramtx import ParamPush, ParamReadAll, ParamRestore
+from gyrocal.mavlink.paramtx import ParamPush, ParamRestore
 from gyrocal.mavlink.poly import evaluate
 from gyrocal.protocol.messages import (
     CoeffAck,
@@ -58,13 +58,7 @@ class UnitRequests:
                 return
             self._report_wanted = True
             if self._reader is None and self._push is None:
-                self._reader = ParamReadAll(
-                    self.profile,
-                    self._send_param,
-                    now,
-                    timeout_s=self.param_timeout_s,
-                    retries=self.param_retries,
-                )
+                self._reader = self._read_all(now)
         elif isinstance(msg, CoeffWrite):
             self._start_push(msg, now, out)
 
@@ -259,8 +253,7 @@ class UnitRequests:
             self._read_retries += 1
             log.info("mavlink %s: parameter read failed (%s); reading again (%d of %d)", self.url,
                      reader.error, self._read_retries, READ_RETRIES)
-            self._reader = ParamReadAll(self.profile, self._send_param, time.monotonic(),
-                                        timeout_s=self.param_timeout_s, retries=self.param_retries)
+            self._reader = self._read_all(time.monotonic())
             return
         if reader.error:
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
