@@ -414,7 +414,29 @@ class ParamPush:
         self.outcome = PushOutcome(ok, reason, 0 if ok else int(nak), dict(self.io.values), self.target)
 
 
-class ParamReadAll:
+class _Job:
+    """A run of requests on an OpRunner (``io``) with a step of its own after each answer or tick:
+    the shape the link feeds PARAM_VALUEs and time to, besides ParamPush."""
+
+    io: OpRunner
+
+    @property
+    def error(self) -> str | None:
+        return self.io.error
+
+    def _after(self, now: float) -> None:
+        raise NotImplementedError
+
+    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
+        self.io.on_value(name, wire, ptype, now)
+        self._after(now)
+
+    def tick(self, now: float) -> None:
+        self.io.tick(now)
+        self._after(now)
+
+
+class ParamReadAll(_Job):
     """Read every parameter of a profile (COEFF_READ, and the context at a switch-on)."""
 
     def __init__(
@@ -435,29 +457,17 @@ class ParamReadAll:
     def finished(self) -> bool:
         return self.io.done
 
-    def _more(self, now: float) -> None:
+    def _after(self, now: float) -> None:
         if self.io.done and not self._extra_asked:
             self._extra_asked = True
             self.io.read_extra(now)  # e.g. CUST_ROTn_* once AHRS_ORIENTATION says a custom rotation
 
     @property
-    def error(self) -> str | None:
-        return self.io.error
-
-    @property
     def values(self) -> Mapping[str, float]:
         return self.io.values
 
-    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
-        self.io.on_value(name, wire, ptype, now)
-        self._more(now)
 
-    def tick(self, now: float) -> None:
-        self.io.tick(now)
-        self._more(now)
-
-
-class ParamRestore:
+class ParamRestore(_Job):
     """Write back the set an autopilot held before a push that a reboot cut short.
 
     Why: the push writes ENABLE = 0 first; cut by a reboot before its ENABLE = 1, the autopilot boots
@@ -483,21 +493,9 @@ class ParamRestore:
     def finished(self) -> bool:
         return self.io.done and (self._enabling or self.io.error is not None)
 
-    @property
-    def error(self) -> str | None:
-        return self.io.error
-
-    def _advance(self, now: float) -> None:
+    def _after(self, now: float) -> None:
         if self.io.done and self.io.error is None and not self._enabling:
             self._enabling = True
             self.io.start([_Op(self.profile.enable.name, 1.0)], now)
         if self._enabling and self.io.done and self.io.error is None:
             self.ok = True
-
-    def on_value(self, name: str, wire: float, ptype: int, now: float) -> None:
-        self.io.on_value(name, wire, ptype, now)
-        self._advance(now)
-
-    def tick(self, now: float) -> None:
-        self.io.tick(now)
-        self._advance(now)
