@@ -186,17 +186,22 @@ def test_a_rejected_value_naks_and_the_old_set_stays(tmp_path: Path) -> None:
             link.stop()
 
 
+def push_into_a_reboot(link: MavlinkLink, col: Collector) -> None:
+    """Push v5 into an autopilot that reboots during it: NAKed BUSY, then the new boot's HELLO."""
+    assert wait_for(lambda: col.of(Hello), 15)
+    assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+    link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+    assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
+    assert not col.of(CoeffAck) and col.of(CoeffNak)[0].reason == NakReason.BUSY
+    assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
+    assert col.of(Hello)[1].boot_count == 2
+
+
 def test_a_reboot_mid_push_naks_and_leaves_no_partial_set(tmp_path: Path) -> None:
     with sim("ardupilot", tmp_path, "--reboot-after-sets", "6") as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
-            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
-            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
-            assert not col.of(CoeffAck) and col.of(CoeffNak)[0].reason == NakReason.BUSY
-            assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
-            assert col.of(Hello)[1].boot_count == 2
+            push_into_a_reboot(link, col)
             # ENABLE=0 was written first: the partial coefficients are not applied after the reboot
             assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 0.0)
         finally:
@@ -219,13 +224,8 @@ def test_a_px4_reboot_mid_push_is_never_acked_as_applied(tmp_path: Path, reboot_
     with sim("px4", tmp_path, "--reboot-after-sets", str(reboot_at)) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", param_timeout_s=0.5)
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
-            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
-            assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
-            assert not col.of(CoeffAck) and col.of(CoeffNak)[0].reason == NakReason.BUSY
-            assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
-            assert col.of(Hello)[1].boot_count == 2 and link.reboot_required is (not whole)
+            push_into_a_reboot(link, col)
+            assert link.reboot_required is (not whole)
             assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0 if whole else 0.0)
             link.send(CoeffRead())
             assert wait_for(lambda: col.of(CoeffReport), 10)
