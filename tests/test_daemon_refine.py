@@ -252,3 +252,49 @@ def test_a_wandering_bias_lets_a_first_set_through_when_waiting_cannot_buy_much(
     assert not refine.gate(left, np.full(3, 6 * dph), 0.2 * dph, 20.0, floor=floor).ok
     # one axis short of it holds the first set back, as in the rule without a floor
     assert not refine.gate(left, np.array([14.0, 21.6, 5.0]) * dph, 0.2 * dph, 20.0, floor=floor).ok
+
+
+# -- a board held at one temperature (a heated IMU): a constant alone first ---------------------------
+def _steady_harness(tmp: Path, applied: object = None) -> Harness:
+    """A still unit held at 50 degC (no warm-up: a heater's set point) with a 0.05 deg/s switch-on
+    bias spread and a thermal slope the steady temperature cannot show: terms 1, temp, temp^2."""
+    effects = Effects(temp_dps_per_c=np.array([2e-3, -3e-3, 1e-3]), temp_ref_c=20.0)
+    truth = TruthModel(coeffs_dps=np.zeros((3, 10)), noise_dps=0.01, switch_on_bias_dps=0.05,
+                       thermal=Thermal(ambient_c=50.0, rise_c=0.0), effects=effects)
+    cfg = _cfg(tmp)
+    unit = VirtualUnit(truth, still((0.0, 0.0, 1.0)), RATE_HZ, 3, 4242, applied=applied)  # type: ignore[arg-type]
+    return Harness(cfg, unit, CalibrationStore(cfg.state_dir))
+
+
+def test_a_board_held_at_one_temperature_gets_its_constant_and_no_temperature_terms(tmp_path: Path) -> None:
+    """A PX4 whose IMU sat at 50 degC was never calibrated: rank 2 < 3 for as long as it ran. Now,
+    after STEADY_S of a steady temperature, a unit holding no thermal curve gets the constant alone."""
+    h = _steady_harness(tmp_path)
+    h.switch_on()
+    h.run(30.0)
+    s = h.session
+    assert s is not None and _acked(h.store) == []
+    assert "a constant alone is learnt first" in s.reason, s.reason
+    h.run(60.0)
+    assert _acked(h.store) == [1], s.reason
+    rec = h.store.get(4242, 1)
+    assert rec is not None and rec.stats["validation"]["stage"] == "bias"
+    c = np.array(rec.coefficients_dps)
+    assert np.all(c[:, 1:] == 0.0), c  # no temperature term learnt at one temperature
+    truth = h.unit.bias_dps() + (50.0 - 20.0) * h.unit.truth.effects.temp_dps_per_c
+    assert np.all(np.abs(c[:, 0] - truth) * DPH < 5.0), (c[:, 0] * DPH, truth * DPH)
+    assert np.all(np.abs(truth) * DPH > 60.0)  # what it removed: every axis had a real drift
+
+
+def test_a_thermal_curve_the_unit_holds_is_not_replaced_by_a_constant(tmp_path: Path) -> None:
+    from gyrocal.protocol.messages import CoeffWrite
+    from gyrocal.protocol.termsets import terms_id
+
+    coeffs = [[0.01, 1e-4, 0.0], [0.0, -2e-4, 0.0], [0.0, 1e-4, 0.0]]  # another tool's thermal curve
+    held = VirtualUnit._build(CoeffWrite(7, terms_id(TERMS), coeffs))
+    h = _steady_harness(tmp_path, applied=held)
+    h.switch_on()
+    h.run(90.0)
+    s = h.session
+    assert s is not None and _acked(h.store) == [], s.reason
+    assert "constant alone" not in s.reason and "rank" in s.reason, s.reason

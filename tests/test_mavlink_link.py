@@ -508,3 +508,30 @@ def test_a_fault_of_the_last_boot_is_judged_again_at_a_new_boot(tmp_path: Path) 
     assert link.fault is not None and not link._ready()
     link._new_boot([], "heartbeat returned after silence")
     assert link.fault is None and link._known_new
+
+
+def test_a_constant_alone_is_written_about_a_steady_temperature_and_a_curve_is_not(tmp_path: Path) -> None:
+    """A board held at 50 degC from switch-on (an IMU heater): a set with temperature terms over a
+    range narrower than 1 degC is refused (never extrapolated); a constant alone, the same at any
+    temperature, is written with TMIN..TMAX widened to 1 degC about the temperature seen."""
+    with SimProcess("--link", "mavlink", "--autopilot", "px4", "--rate", "250", "--ambient", "50",
+                    "--rise", "0", "--status-json", str(tmp_path / "ap.json"), tmp_path=tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(4, TEMP_POLY2_ID, Q[:, :3]))
+            assert wait_for(lambda: col.of(CoeffNak), 15)
+            assert col.of(CoeffNak)[0].reason == NakReason.OUT_OF_RANGE
+            const = np.zeros((3, 3))
+            const[:, 0] = [0.2, -0.05, 0.08]
+            link.send(CoeffWrite(5, TEMP_POLY2_ID, const))
+            assert wait_for(lambda: col.of(CoeffAck), 15), col.msgs
+            assert col.of(CoeffAck)[0].version == 5
+            assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0)
+            p = read_status(tmp_path / "ap.json")["params"]
+            lo, hi = p["TC_G0_TMIN"], p["TC_G0_TMAX"]
+            assert hi - lo >= 1.0 - 1e-4 and lo < 50.0 < hi
+            assert p["TC_G0_X1_0"] == p["TC_G0_X2_0"] == 0.0
+        finally:
+            link.stop()

@@ -15,6 +15,14 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
   the mean residual of the stored set. A least-squares update would spread the bias change over
   every term that is 1 at the poses seen (1, gz, gz^2 at z up) and corrupt the others' stored
   values; the bias is the quantity that changes from one switch-on to the next.
+- **A steady temperature, and no set held.** A model of the constant and temperature terms alone (an
+  autopilot's polynomial) cannot reach its structural rank while the temperature stays put: an IMU
+  held by its heater at 50 degC, or a board that was warm before the daemon started. With no stored
+  set that unit was never calibrated (a PX4 at a steady 50 degC: rank 2 < 3 for as long as it ran).
+  Once the session says the temperature is steady and the unit holds no set (``cold_ready``), the
+  bias-only stage runs against a zero set: its constant term is the mean drift, its temperature
+  terms 0, which is right at the temperature seen and clamps to nothing elsewhere. A full set
+  follows when the temperature moves.
 - **Predicted drift.** What the user cares about is the drift a set leaves in the output, not the
   1-sigma of each coefficient. ``prediction`` gives the standard error of the set's prediction
   c^T phi, RMS over the poses seen and over the sphere, from the estimator's covariance:
@@ -117,6 +125,12 @@ class Learner:
         self.full_rank = structural_rank(tuple(self.names))
         self.prior = prior_c
         self.const = self.names.index("1") if "1" in self.names else None
+        # a cold start of a constant-and-temperature model: its bias-only stage, against a zero set, is
+        # allowed once the session sets cold_ready (the module docstring)
+        temp_only = self.const is not None and len(self.names) > 1 and \
+            set(temp_indices(self.names)) | {self.const} == set(range(len(self.names)))
+        self._zero = np.zeros((3, len(self.names))) if prior_c is None and temp_only else None
+        self.cold_ready = False
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)
         self._n = 0
@@ -219,17 +233,32 @@ class Learner:
         # only the Kalman filter uses time (its bias states move with dt); the others stay as they were
         self._version += 1
         self.est.update_many(phi, raw_dps, t_s if self.est.method == "kf" else None)
-        if self.prior is not None:
-            res = raw_dps - phi @ self.prior.T
+        base = self.prior if self.prior is not None else self._zero
+        if base is not None:
+            res = raw_dps - phi @ base.T
             ok = np.all(np.isfinite(res), axis=1)
             self._sum_res += res[ok].sum(axis=0)
             self._sum_res2 += (res[ok] ** 2).sum(axis=0)
             self._n += int(ok.sum())
 
     @property
+    def cold_bias(self) -> bool:
+        """A cold start that may learn a constant-only set while the temperature is steady (module
+        docstring); the session decides when (``cold_ready``)."""
+        return self._zero is not None
+
+    @property
+    def _base(self) -> np.ndarray | None:
+        """The set the bias-only stage adds this switch-on's bias to: the stored one, or a zero set
+        once a steady cold start may (``cold_ready``); None: no bias-only stage."""
+        if self.prior is not None:
+            return self.prior
+        return self._zero if self.cold_ready else None
+
+    @property
     def bias_only(self) -> bool:
         """True while a warm start lacks the excitation for a full update (see the module docstring)."""
-        return (self.prior is not None and self.const is not None and self._n > 0
+        return (self._base is not None and self.const is not None and self._n > 0
                 and self._identifiability().rank < self.full_rank)
 
     def _identifiability(self) -> Any:
@@ -241,8 +270,9 @@ class Learner:
 
     @property
     def coefficients(self) -> np.ndarray:
-        if self.bias_only and self.prior is not None:
-            c = self.prior.copy()
+        base = self._base
+        if self.bias_only and base is not None:
+            c = base.copy()
             c[:, self.const] += self._sum_res / self._n
             return c
         return self._cached("coefficients", lambda: self.est.coefficients).copy()

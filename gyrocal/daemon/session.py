@@ -172,6 +172,11 @@ class Session(RecoveryMixin):
     MAX_POSES = 64
     BIAS_MIN_S = 1.0
     """Seconds of still samples before a bias-only set may be pushed."""
+    STEADY_S = 60.0
+    STEADY_BAND_C = 0.5
+    """A cold start of a constant-and-temperature model learns a constant alone once its still samples'
+    temperature has stayed within +-STEADY_BAND_C [degC] for STEADY_S [s] and the unit holds no set
+    (learner.py, "A steady temperature"): a heated IMU was never calibrated."""
     BIAS_MIN_CUT = 3.0
     """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
     times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
@@ -234,6 +239,8 @@ class Session(RecoveryMixin):
         self._next_validation_at = 0
         self._validated_at = 0  # learner samples at the last validation
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
+        self._steady_from: tuple[float, float] | None = None  # (unit time [s], temp [degC]) of the band
+        self._steady_s = 0.0  # how long [s] the temperature has stayed in that band (STEADY_S)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
@@ -376,6 +383,8 @@ class Session(RecoveryMixin):
         if self._has_temp and still.any():
             t = samples["temp"][still]
             t = t[np.isfinite(t)]
+            if t.size and self.learner.cold_bias:
+                self._track_steady(samples["t"][still][np.isfinite(samples["temp"][still])], t)
             if t.size:
                 lo, hi = float(t.min()), float(t.max())
                 self.temp_seen = (lo, hi) if self.temp_seen is None else \
@@ -385,6 +394,35 @@ class Session(RecoveryMixin):
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
         self._note_poses(blocks, cols)
+
+    def _track_steady(self, t_s: np.ndarray, temp_c: np.ndarray) -> None:
+        """How long [s] the temperature [degC] has stayed within STEADY_BAND_C of where its band began
+        (a sample outside starts a new band there)."""
+        ref = self._steady_from or (float(t_s[0]), float(temp_c[0]))
+        out = np.flatnonzero(np.abs(temp_c - ref[1]) > self.STEADY_BAND_C)
+        if out.size:
+            ref = (float(t_s[out[-1]]), float(temp_c[out[-1]]))
+        self._steady_from = ref
+        self._steady_s = float(t_s[-1]) - ref[0]
+
+    def _cold_bias_check(self) -> str:
+        """Let a steady cold start learn its constant alone (STEADY_S); what it waits for, or ""."""
+        lr = self.learner
+        if not lr.cold_bias or lr.cold_ready or self._bias_pushed or self.validated_rms is not None:
+            return ""
+        if self.applied is None or self.applied.uses("temp") or self.applied.uses("dtemp"):
+            # a thermal curve the unit holds (another tool's) is not replaced by a constant; a constant
+            # it holds (PX4's CAL_GYRO offsets) is, when the new one removes enough drift (the gate)
+            return ""
+        if self._steady_s < self.STEADY_S:
+            return (f"; with the temperature steady (within {self.STEADY_BAND_C:g} degC for "
+                    f"{self.STEADY_S:.0f} s: {self._steady_s:.0f} s so far) a constant alone is learnt first")
+        lr.cold_ready = True
+        lo, hi = self.temp_seen or (float("nan"), float("nan"))
+        log.info("unit %s: the temperature has stayed within %g degC for %.0f s (%.1f..%.1f degC seen) and "
+                 "the unit holds no set: learning its constant alone, temperature terms 0, until the "
+                 "temperature moves", self.hello.serial, self.STEADY_BAND_C, self._steady_s, lo, hi)
+        return ""
 
     def heard(self, t_unit: float) -> None:
         """The unit's clock [s] as of the newest sample heard. The engine calls it before the still
@@ -696,10 +734,13 @@ class Session(RecoveryMixin):
         if self.range_hold is not None:
             self.reason = self.range_hold
             return
+        waits = self._cold_bias_check()
         if self._bias_stage_due():
             self._push_bias(now)
             return
         ok, why = self.learner.converged
+        if not ok:
+            why += waits
         if ok:
             ok, gate_why = self._gate()
             if not ok:

@@ -42,6 +42,9 @@ CMD_REBOOT = 246
 READ_RETRIES = 3
 """Whole parameter reads tried again at a boot's start before a failed read is a fault."""
 
+MIN_RANGE_C = 1.0
+"""The narrowest TMIN..TMAX [degC] a set with temperature terms is written with (never extrapolated)."""
+
 
 class UnitRequests:
     """The request half of MavlinkLink (see the module docstring)."""
@@ -83,7 +86,7 @@ class UnitRequests:
             log.warning("mavlink link: push of v%d refused: %s", msg.version, why)
             out.append(CoeffNak(msg.version, crc, int(reason)))
             return
-        lo, hi = self._temp_bounds()
+        lo, hi = self._push_bounds(msg)
         kept = (self.state.unit(self.serial).get("ranges") or {}).get(str(msg.version))
         if isinstance(kept, list) and len(kept) == 2 and self.tmin_c is None and self.tmax_c is None:
             # a version the autopilot held before (a rollback) goes back with the range it was learnt
@@ -125,13 +128,25 @@ class UnitRequests:
             return "the vehicle is armed; compensation is never changed in flight", NakReason.BUSY
         if self._push is not None:
             return "a push is already running", NakReason.BUSY
-        lo, hi = self._temp_bounds()
-        if not hi - lo >= 1.0:
+        lo, hi = self._push_bounds(msg)
+        if not hi - lo >= MIN_RANGE_C:
             return (
                 f"the temperature range seen ({lo:.1f}..{hi:.1f} degC) is too narrow",
                 NakReason.OUT_OF_RANGE,
             )
         return "", NakReason.BUSY
+
+    def _push_bounds(self: MavlinkLink, msg: CoeffWrite) -> tuple[float, float]:
+        """TMIN/TMAX [degC] for ``msg``'s set: the range seen (``_temp_bounds``); a constant alone (its
+        temperature terms 0: a board held at one temperature, session.py STEADY_S) is the same at any
+        temperature, so a range narrower than MIN_RANGE_C is widened about its middle to MIN_RANGE_C."""
+        lo, hi = self._temp_bounds()
+        const_only = not np.any(np.asarray(msg.coeffs_dps, dtype=np.float64)[:, 1:])
+        if const_only and np.isfinite(lo) and np.isfinite(hi) and hi - lo < MIN_RANGE_C:
+            mid = (lo + hi) / 2.0
+            lo = float(np.floor((mid - MIN_RANGE_C / 2.0) * 10) / 10)
+            hi = float(np.ceil((mid + MIN_RANGE_C / 2.0) * 10) / 10)
+        return lo, hi
 
     def _temp_bounds(self: MavlinkLink) -> tuple[float, float]:
         """TMIN/TMAX: the range seen over all boots (never extrapolate), unless the config fixes them."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import select
 import signal
@@ -207,7 +208,15 @@ def configure(p: argparse.ArgumentParser) -> None:
         default="",
         metavar="C[,C...]",
         help="the board's temperature at each boot of this run [degC], in order, the last repeating "
-        "(default 20); each warm-up rises 30 degC from it",
+        "(default 20); each warm-up rises --rise degC from it",
+    )
+    g.add_argument(
+        "--rise",
+        type=float,
+        default=30.0,
+        metavar="C",
+        help="the warm-up's rise [degC] (default 30; 0: a board held at its ambient from switch-on, as an "
+        "IMU heater holds its set point)",
     )
     g.add_argument(
         "--rotation",
@@ -240,6 +249,8 @@ def main(args: argparse.Namespace) -> int:
     faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets)
     if args.warmup_tau <= 0:
         raise ConfigError("--warmup-tau must be > 0 s")
+    if not math.isfinite(args.rise) or args.rise < 0:
+        raise ConfigError("--rise must be a finite number of degC >= 0")
     try:
         ambients = tuple(float(a) for a in args.ambient.split(",") if a.strip())
     except ValueError as err:
@@ -251,7 +262,7 @@ def main(args: argparse.Namespace) -> int:
         args.rate,
         args.seed,
         faults=faults,
-        thermal=Thermal(ambient_c=20.0, rise_c=30.0, tau_s=args.warmup_tau),
+        thermal=Thermal(ambient_c=20.0, rise_c=args.rise, tau_s=args.warmup_tau),
         ambients_c=ambients,
     )
     if args.flash and Path(args.flash).exists():
