@@ -283,6 +283,27 @@ def test_push_accepts_fit_output_and_store_records(tmp_path: Path) -> None:
     assert load_coefficient_file(rec) == (TERMS, [[0.0, 0.0, 0.0, 1.0]] * 3)
 
 
+def test_push_file_carries_the_temperature_range_its_set_was_learnt_over(tmp_path: Path) -> None:
+    """An autopilot writes it as TMIN..TMAX: the range the link has seen since may reach past it."""
+    from gyrocal.daemon.cli_control import file_temp_range
+    from gyrocal.daemon.push import parse_temp_range
+
+    fit = tmp_path / "fit.json"  # `gyrocal fit --json` of a log with temperature terms
+    fit.write_text(json.dumps({"terms": ["1", "temp"], "coefficients": [[0, 1]] * 3,
+                               "temp_range_c": [21.5, 38.0]}))
+    rec = tmp_path / "v000003.yaml"  # a store record
+    rec.write_text("terms: ['1', temp]\ncoefficients_dps: [[0, 1], [0, 1], [0, 1]]\n"
+                   "stats: {temp_range_c: [22.4, 38.0]}\n")
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({"terms": ["1", "temp"], "coefficients": [[0, 1]] * 3}))
+    assert file_temp_range(fit) == (21.5, 38.0) and file_temp_range(rec) == (22.4, 38.0)
+    assert file_temp_range(bare) is None
+    assert parse_temp_range("20,45.5", "--temp-range") == (20.0, 45.5)
+    for bad in ("45,20", "20", "a,b", "nan,3"):
+        with pytest.raises(ConfigError, match="--temp-range"):
+            parse_temp_range(bad, "--temp-range")
+
+
 @pytest.mark.parametrize(("content", "suffix", "expected"), [
     ("{not json", ".json", "not valid JSON"),
     ("terms: [1\n", ".yaml", ":2:1: not valid YAML (expected ',' or ']'"),  # one line, not PyYAML's drawing
@@ -579,3 +600,15 @@ def test_a_file_push_of_a_set_the_unit_cannot_hold_stores_nothing(tmp_path: Path
     reply = eng._command({"cmd": "push", "terms": ["1", "gx"], "coefficients": [[0.01, 0.0]] * 3}, 0.0)
     assert not reply["ok"] and "cannot hold" in reply["error"] and "nothing was stored" in reply["error"]
     assert eng.store.history(77) == []
+
+    held: list[tuple[int, float, float]] = []
+    Up.hold_range = staticmethod(lambda v, lo, hi: held.append((v, lo, hi)))  # type: ignore[attr-defined]
+    poly = [[0.01, 1e-4, 0.0, 0.0]] * 3
+    reply = eng._command({"cmd": "push", "terms": ["1", "temp", "temp^2", "temp^3"], "coefficients": poly,
+                          "temp_range_c": [30.0, 22.0]}, 0.0)
+    assert not reply["ok"] and "LO must be below HI" in reply["error"] and eng.store.history(77) == []
+    reply = eng._command({"cmd": "push", "terms": ["1", "temp", "temp^2", "temp^3"], "coefficients": poly,
+                          "temp_range_c": [22.0, 30.0]}, 0.0)
+    assert reply["ok"], reply
+    v = reply["version"]
+    assert held == [(v, 22.0, 30.0)] and eng.store.get(77, v).stats["temp_range_c"] == [22.0, 30.0]

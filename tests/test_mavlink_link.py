@@ -513,7 +513,8 @@ def test_a_fault_of_the_last_boot_is_judged_again_at_a_new_boot(tmp_path: Path) 
 def test_a_constant_alone_is_written_about_a_steady_temperature_and_a_curve_is_not(tmp_path: Path) -> None:
     """A board held at 50 degC from switch-on (an IMU heater): a set with temperature terms over a
     range narrower than 1 degC is refused (never extrapolated); a constant alone, the same at any
-    temperature, is written with TMIN..TMAX widened to 1 degC about the temperature seen."""
+    temperature, is written with TMIN..TMAX widened to 1 degC about the temperature seen; a set whose
+    own range the operator gave is written with that."""
     with SimProcess("--link", "mavlink", "--autopilot", "px4", "--rate", "250", "--ambient", "50",
                     "--rise", "0", "--status-json", str(tmp_path / "ap.json"), tmp_path=tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
@@ -533,5 +534,12 @@ def test_a_constant_alone_is_written_about_a_steady_temperature_and_a_curve_is_n
             lo, hi = p["TC_G0_TMIN"], p["TC_G0_TMAX"]
             assert hi - lo >= 1.0 - 1e-4 and lo < 50.0 < hi
             assert p["TC_G0_X1_0"] == p["TC_G0_X2_0"] == 0.0
+            # an operator's file that says its set was learnt over 22..30 degC (push --file of a fit or
+            # a store record) is written with that range, not the one seen now
+            link.hold_range(6, 22.0, 30.0)
+            link.send(CoeffWrite(6, TEMP_POLY2_ID, Q[:, :3]))
+            assert wait_for(lambda: len(col.of(CoeffAck)) == 2, 15), col.msgs
+            assert param_becomes(tmp_path, "TC_G0_TMAX", 30.0)
+            assert read_status(tmp_path / "ap.json")["params"]["TC_G0_TMIN"] == 22.0
         finally:
             link.stop()

@@ -48,6 +48,9 @@ def test_fit_takes_a_terms_file_and_extra_terms(log_path: Path, tmp_path: Path,
     assert main(["fit", str(log_path), "--terms-file", str(spec), "--json", "--all-samples"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["terms"] == ["1", "gx", "gy", "gz", "temp", "temp*dtemp"] and res["samples"] == 7200
+    # the range the set was fitted over (push --file writes it as an autopilot's TMIN..TMAX)
+    temps = np.loadtxt(log_path, delimiter=",", skiprows=3, usecols=7)
+    assert res["temp_range_c"] == pytest.approx([temps.min(), temps.max()], abs=1e-6)
     assert main(["fit", str(log_path), "--terms", "1", "gx", "gy", "gz"]) == 0
     assert "rank 4 of 4" in capsys.readouterr().out
 

@@ -362,19 +362,40 @@ def configure_push(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--file", type=Path, required=True, metavar="FILE",
                         help="JSON or YAML with 'terms' and 'coefficients' ({x,y,z} or 3 rows, deg/s per "
                              "term unit); `gyrocal fit --json` output and store records are accepted")
+    parser.add_argument("--temp-range", metavar="LO,HI",
+                        help="the temperatures [degC] the set was learnt over, written as an autopilot's "
+                             "TMIN,TMAX (default: the file's temp_range_c, as fit and store records give it, "
+                             "else the range the link has seen)")
     _add_no_wait(parser)
 
 
 def main_push(args: argparse.Namespace) -> int:
+    from gyrocal.daemon.push import parse_temp_range  # imported late: it pulls in numpy
+
     terms, coeffs = load_coefficient_file(args.file)
-    reply = request(args.socket, {"cmd": "push", "terms": terms, "coefficients": coeffs,
-                                  "source": os.fspath(args.file)}, timeout=30.0)
+    req: dict[str, Any] = {"cmd": "push", "terms": terms, "coefficients": coeffs,
+                           "source": os.fspath(args.file)}
+    rng = (parse_temp_range(args.temp_range, "--temp-range") if args.temp_range
+           else file_temp_range(args.file))
+    if rng is not None:
+        req["temp_range_c"] = list(rng)
+    reply = request(args.socket, req, timeout=30.0)
     rc = _answer(reply, f"pushed {len(terms)} terms from {args.file}")
     return rc if rc or args.no_wait else follow_push(args.socket, reply.get("version"))
 
 
-def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
-    """Read and validate a coefficient set; return (terms, 3 rows x, y, z). Raises ConfigError."""
+def file_temp_range(path: Path) -> tuple[float, float] | None:
+    """The range [degC] a coefficient file says its set was learnt over: ``temp_range_c`` at its top
+    (`gyrocal fit --json`) or in ``stats`` (a store record); None when it says none."""
+    from gyrocal.daemon.push import parse_temp_range  # imported late: it pulls in numpy
+
+    doc = _coefficient_doc(path)
+    rng = doc.get("temp_range_c", (doc.get("stats") or {}).get("temp_range_c"))
+    return None if rng is None else parse_temp_range(rng, f"{path}: field 'temp_range_c'")
+
+
+def _coefficient_doc(path: Path) -> dict[str, Any]:
+    """A coefficient file's object (JSON, or YAML by its suffix). Raises ConfigError."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as err:
@@ -394,6 +415,12 @@ def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: top level is {type(doc).__name__}; fix: it must be an object with "
                           "'terms' and 'coefficients'")
+    return doc
+
+
+def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
+    """Read and validate a coefficient set; return (terms, 3 rows x, y, z). Raises ConfigError."""
+    doc = _coefficient_doc(path)
     terms = doc.get("terms")
     if not isinstance(terms, list) or not terms or not all(isinstance(t, str) and t.strip() for t in terms):
         raise ConfigError(f"{path}: field 'terms' must be a non-empty list of term names, e.g. "

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from gyrocal.daemon.config import load_config
-from gyrocal.daemon.push import check_set
+from gyrocal.daemon.push import check_set, parse_temp_range
 from gyrocal.daemon.session import State
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
 from gyrocal.errors import ConfigError
@@ -119,15 +119,24 @@ class CommandsMixin:
         if why is not None:
             return {"ok": False, "error": why}
         coeffs = np.asarray(req["coefficients"], dtype=np.float64)
+        stats: dict[str, Any] = {"source": "file"}
+        if req.get("temp_range_c") is not None:  # what the set was learnt over (cli_control.file_temp_range)
+            try:
+                stats["temp_range_c"] = list(parse_temp_range(req["temp_range_c"], "temp_range_c"))
+            except ConfigError as err:
+                return {"ok": False, "error": str(err)}
         try:
             rec = self.store.add(CalibrationRecord(
                 serial=serial, version=0, terms=terms, coefficients_dps=coeffs.tolist(),
-                uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats={"source": "file"},
+                uncertainty_dps=[[float("nan")] * len(terms)] * 3, identifiable={}, stats=stats,
                 session={"boot_count": s.hello.boot_count, "fw": s.hello.fw_version},
                 push={"status": "pending"}),
                 min_version=s.version_floor())
         except Exception as err:  # never a unit set the store does not know: refuse the push
             return {"ok": False, "error": f"store unavailable ({err}); nothing was pushed"}
+        hold = getattr(self.link, "hold_range", None)  # an autopilot writes it as TMIN..TMAX
+        if hold is not None and "temp_range_c" in stats:
+            hold(rec.version, *stats["temp_range_c"])
         return self._started(s.start_push(rec.version, terms, coeffs, now), rec.version, s, "a file push")
 
     @staticmethod

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from gyrocal.errors import ProtocolError
+from gyrocal.errors import ConfigError, ProtocolError
 from gyrocal.protocol.messages import (
     MAX_TERMS,
     CoeffAck,
@@ -58,6 +58,19 @@ is a fault (a fit gone wrong, a file in rad/s), not a calibration; the virtual u
 
 MAX_REPORT_COEFF_DPS = 1000.0
 """A read-back beyond this [deg/s per term unit] is refused as corrupt: no gyro's drift is that large."""
+
+
+def parse_temp_range(value: Any, where: str) -> tuple[float, float]:
+    """``LO,HI`` (text) or [LO, HI] as a temperature range [degC], LO < HI. Raises ConfigError."""
+    parts = value.split(",") if isinstance(value, str) else value
+    try:
+        lo, hi = (float(v) for v in parts)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: {value!r} is not a temperature range; fix: two numbers LO,HI in degC, "
+                          "e.g. 21.5,48.0") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ConfigError(f"{where}: {value!r}: LO must be below HI, both finite degC")
+    return lo, hi
 
 
 def check_set(terms: Any, coeffs: Any) -> str | None:

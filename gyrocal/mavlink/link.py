@@ -203,6 +203,14 @@ class MavlinkLink(UnitRequests, Link):
     def target(self) -> str:
         return self.url
 
+    def hold_range(self, version: int, lo_c: float, hi_c: float) -> None:
+        """The temperatures [degC] an operator's set ``version`` was learnt over (`gyrocal push --file`
+        of a fit or a store record): written as its TMIN..TMAX, never the range seen now, which may reach
+        past it (the daemon calls this before it sends the write)."""
+        if hasattr(self, "serial"):
+            ranges = self.state.unit(self.serial).setdefault("ranges", {})
+            ranges[str(version)] = [float(lo_c), float(hi_c)]
+
     # ---- Link hooks ------------------------------------------------------------------------------
     def _open(self) -> None:
         mavutil = pymav.mavutil()

@@ -87,13 +87,8 @@ class UnitRequests:
             out.append(CoeffNak(msg.version, crc, int(reason)))
             return
         lo, hi = self._push_bounds(msg)
-        kept = (self.state.unit(self.serial).get("ranges") or {}).get(str(msg.version))
-        if isinstance(kept, list) and len(kept) == 2 and self.tmin_c is None and self.tmax_c is None:
-            # a version the autopilot held before (a rollback) goes back with the range it was learnt
-            # over: the range seen since had widened, and v1 of 22.4-38.0 degC went back with TMAX 44.8,
-            # extrapolated (an integrator's audit)
-            lo, hi = float(kept[0]), float(kept[1])
-            log.info("mavlink %s: v%d goes back with its own range, %.1f..%.1f degC", self.url,
+        if self._own_range(msg.version) is not None:
+            log.info("mavlink %s: v%d is written with its own range, %.1f..%.1f degC", self.url,
                      msg.version, lo, hi)
         self._push_range = (lo, hi)
         self._push_write = msg
@@ -137,9 +132,13 @@ class UnitRequests:
         return "", NakReason.BUSY
 
     def _push_bounds(self: MavlinkLink, msg: CoeffWrite) -> tuple[float, float]:
-        """TMIN/TMAX [degC] for ``msg``'s set: the range seen (``_temp_bounds``); a constant alone (its
-        temperature terms 0: a board held at one temperature, session.py STEADY_S) is the same at any
-        temperature, so a range narrower than MIN_RANGE_C is widened about its middle to MIN_RANGE_C."""
+        """TMIN/TMAX [degC] for ``msg``'s set: its own range (``_own_range``), else the range seen
+        (``_temp_bounds``). A constant alone (its temperature terms 0: a board held at one temperature,
+        session.py STEADY_S) is the same at any temperature, so a range seen narrower than MIN_RANGE_C
+        is widened about its middle to MIN_RANGE_C."""
+        own = self._own_range(msg.version)
+        if own is not None:
+            return own
         lo, hi = self._temp_bounds()
         const_only = not np.any(np.asarray(msg.coeffs_dps, dtype=np.float64)[:, 1:])
         if const_only and np.isfinite(lo) and np.isfinite(hi) and hi - lo < MIN_RANGE_C:
@@ -147,6 +146,16 @@ class UnitRequests:
             lo = float(np.floor((mid - MIN_RANGE_C / 2.0) * 10) / 10)
             hi = float(np.ceil((mid + MIN_RANGE_C / 2.0) * 10) / 10)
         return lo, hi
+
+    def _own_range(self: MavlinkLink, version: int) -> tuple[float, float] | None:
+        """The range [degC] ``version`` was learnt over, when the link keeps one and the config pins
+        none: a version the autopilot held before (a rollback), or an operator's file that said it
+        (``hold_range``). The range seen since may be wider: v1 of 22.4-38.0 degC went back with TMAX
+        44.8, extrapolated (an integrator's audit)."""
+        kept = (self.state.unit(self.serial).get("ranges") or {}).get(str(version))
+        if isinstance(kept, list) and len(kept) == 2 and self.tmin_c is None and self.tmax_c is None:
+            return float(kept[0]), float(kept[1])
+        return None
 
     def _temp_bounds(self: MavlinkLink) -> tuple[float, float]:
         """TMIN/TMAX: the range seen over all boots (never extrapolate), unless the config fixes them."""

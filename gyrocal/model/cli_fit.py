@@ -163,6 +163,9 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
         "rows": data.total_rows, "source_rows": accounting(log)["source_rows"], "still_only": not all_samples,
         "warnings": warnings,
     }
+    if "temp" in spec.names and len(data.phi):  # the range the set was fitted over: an autopilot's
+        t = data.phi[:, spec.names.index("temp")]  # TMIN..TMAX when it is pushed (push --file)
+        out["temp_range_c"] = [float(np.min(t)), float(np.max(t))]
     if applied is not None:
         out["applied_added"] = {"version": int(log.metadata.get("applied_version", "0")),
                                 "terms": list(applied[0])}
