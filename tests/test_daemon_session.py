@@ -134,6 +134,30 @@ def test_switch_on_in_a_vehicle_at_one_pose_re_estimates_the_bias_and_keeps_the_
     np.testing.assert_allclose((c2 - c1) @ xpose, (c2 - c1) @ zpose, atol=2e-4)  # bias only
 
 
+def test_a_unit_mounted_at_one_pose_with_no_stored_set_gets_its_bias(tmp_path: Path) -> None:
+    """A unit installed in its vehicle, never tumbled: rank 1 < 9 for good, and it was never
+    calibrated. After STEADY_S with no new direction it gets the constant alone (every other term 0),
+    which takes out the drift at the pose it sits in."""
+    from gyrocal.sim.schedule import still
+
+    h = Harness.make(tmp_path)
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    h.switch_on()
+    before = h.unit.status()["drift_rms_raw_dps"]
+    h.run(40)
+    s = h.session
+    assert s is not None and not s.last_push
+    assert "a constant alone is learnt first" in s.reason and "no new direction learnt for" in s.reason
+    h.run(60, until=_pushed)
+    assert s.last_push.get("status") == "acked", s.reason
+    rec = h.store.latest(4242)
+    c = np.asarray(rec.coefficients_dps)
+    assert rec.stats["validation"]["stage"] == "bias" and np.all(c[:, 1:] == 0.0), c
+    after = h.unit.status()["drift_rms_compensated_dps"]
+    for a in "xyz":
+        assert after[a] * 5 <= before[a], (a, before[a], after[a])
+
+
 def test_monitoring_raises_a_drift_alarm_when_the_residual_grows(tmp_path: Path) -> None:
     h = Harness.make(tmp_path)
     h.switch_on()

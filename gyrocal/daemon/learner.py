@@ -15,14 +15,15 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
   the mean residual of the stored set. A least-squares update would spread the bias change over
   every term that is 1 at the poses seen (1, gz, gz^2 at z up) and corrupt the others' stored
   values; the bias is the quantity that changes from one switch-on to the next.
-- **A steady temperature, and no set held.** A model of the constant and temperature terms alone (an
-  autopilot's polynomial) cannot reach its structural rank while the temperature stays put: an IMU
-  held by its heater at 50 degC, or a board that was warm before the daemon started. With no stored
-  set that unit was never calibrated (a PX4 at a steady 50 degC: rank 2 < 3 for as long as it ran).
-  Once the session says the temperature is steady and the unit holds no set (``cold_ready``), the
-  bias-only stage runs against a zero set: its constant term is the mean drift, its temperature
-  terms 0, which is right at the temperature seen and clamps to nothing elsewhere. A full set
-  follows when the temperature moves.
+- **A cold start that stops learning: the constant alone.** With no stored set, a unit whose data
+  stops short of the structural rank was never calibrated: an autopilot's polynomial while the
+  temperature stays put (an IMU held by its heater at 50 degC, a board warm before the daemon
+  started: a PX4 at a steady 50 degC was rank 2 < 3 for as long as it ran), or seed 000's terms on a
+  unit mounted at one pose in its vehicle (rank 1 < 9 for good). Once the session says the data has
+  stopped adding directions (session.py, ``STEADY_S``) and the unit holds no set beyond a constant
+  (``cold_ready``), the bias-only stage runs against a zero set: its constant term is the mean drift,
+  every other term 0. That is right at the temperature and the pose seen, and no worse elsewhere than
+  the bias it removes is; a full set follows when the data reaches the rank (a tumble, a warm-up).
 - **Predicted drift.** What the user cares about is the drift a set leaves in the output, not the
   1-sigma of each coefficient. ``prediction`` gives the standard error of the set's prediction
   c^T phi, RMS over the poses seen and over the sphere, from the estimator's covariance:
@@ -125,11 +126,10 @@ class Learner:
         self.full_rank = structural_rank(tuple(self.names))
         self.prior = prior_c
         self.const = self.names.index("1") if "1" in self.names else None
-        # a cold start of a constant-and-temperature model: its bias-only stage, against a zero set, is
-        # allowed once the session sets cold_ready (the module docstring)
-        temp_only = self.const is not None and len(self.names) > 1 and \
-            set(temp_indices(self.names)) | {self.const} == set(range(len(self.names)))
-        self._zero = np.zeros((3, len(self.names))) if prior_c is None and temp_only else None
+        # a cold start's bias-only stage, against a zero set, once the session sets cold_ready (the
+        # module docstring)
+        cold = prior_c is None and self.const is not None and len(self.names) > 1
+        self._zero = np.zeros((3, len(self.names))) if cold else None
         self.cold_ready = False
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)
@@ -243,9 +243,14 @@ class Learner:
 
     @property
     def cold_bias(self) -> bool:
-        """A cold start that may learn a constant-only set while the temperature is steady (module
-        docstring); the session decides when (``cold_ready``)."""
+        """A cold start that may learn a constant-only set once its data stops adding directions
+        (module docstring); the session decides when (``cold_ready``)."""
         return self._zero is not None
+
+    @property
+    def rank(self) -> int:
+        """The number of directions this session's data has determined."""
+        return int(self._identifiability().rank)
 
     @property
     def _base(self) -> np.ndarray | None:

@@ -174,9 +174,10 @@ class Session(RecoveryMixin):
     """Seconds of still samples before a bias-only set may be pushed."""
     STEADY_S = 60.0
     STEADY_BAND_C = 0.5
-    """A cold start of a constant-and-temperature model learns a constant alone once its still samples'
-    temperature has stayed within +-STEADY_BAND_C [degC] for STEADY_S [s] and the unit holds no set
-    (learner.py, "A steady temperature"): a heated IMU was never calibrated."""
+    """A cold start learns a constant alone once its data has stopped adding directions for STEADY_S
+    [s] of unit time (the rank unchanged; with temperature terms, the still samples' temperature also
+    within +-STEADY_BAND_C [degC]) and the unit holds no set beyond a constant (learner.py, "A cold
+    start that stops learning"): a heated IMU, and a unit mounted at one pose, were never calibrated."""
     BIAS_MIN_CUT = 3.0
     """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
     times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
@@ -241,6 +242,7 @@ class Session(RecoveryMixin):
         self._peak_trate = 0.0  # the fastest |dT/dt| [degC/s] seen this session (refine.settled)
         self._steady_from: tuple[float, float] | None = None  # (unit time [s], temp [degC]) of the band
         self._steady_s = 0.0  # how long [s] the temperature has stayed in that band (STEADY_S)
+        self._rank_since: tuple[int, float] = (-1, float("nan"))  # (rank, unit time [s] it was reached)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
@@ -383,7 +385,7 @@ class Session(RecoveryMixin):
         if self._has_temp and still.any():
             t = samples["temp"][still]
             t = t[np.isfinite(t)]
-            if t.size and self.learner.cold_bias:
+            if t.size and self.learner.cold_bias and self._has_temp:
                 self._track_steady(samples["t"][still][np.isfinite(samples["temp"][still])], t)
             if t.size:
                 lo, hi = float(t.min()), float(t.max())
@@ -406,22 +408,36 @@ class Session(RecoveryMixin):
         self._steady_s = float(t_s[-1]) - ref[0]
 
     def _cold_bias_check(self) -> str:
-        """Let a steady cold start learn its constant alone (STEADY_S); what it waits for, or ""."""
+        """Let a cold start whose data has stopped adding directions learn its constant alone
+        (STEADY_S); what it waits for, or ""."""
         lr = self.learner
-        if not lr.cold_bias or lr.cold_ready or self._bias_pushed or self.validated_rms is not None:
+        if not lr.cold_bias or lr.cold_ready or self._bias_pushed or self.validated_rms is not None \
+                or lr.samples == 0:
             return ""
-        if self.applied is None or self.applied.uses("temp") or self.applied.uses("dtemp"):
-            # a thermal curve the unit holds (another tool's) is not replaced by a constant; a constant
-            # it holds (PX4's CAL_GYRO offsets) is, when the new one removes enough drift (the gate)
+        a = self.applied
+        if a is None or (a.names and bool(np.any(np.delete(a.coeffs_dps, list(a.names).index("1"), axis=1)
+                                                 if "1" in a.names else a.coeffs_dps))):
+            # a curve the unit holds (a factory calibration, another tool's thermal one) is not replaced
+            # by a constant; a constant it holds (PX4's CAL_GYRO offsets) is, when the new one removes
+            # enough drift (the gate)
             return ""
-        if self._steady_s < self.STEADY_S:
-            return (f"; with the temperature steady (within {self.STEADY_BAND_C:g} degC for "
-                    f"{self.STEADY_S:.0f} s: {self._steady_s:.0f} s so far) a constant alone is learnt first")
+        rank = lr.rank
+        if rank != self._rank_since[0]:
+            self._rank_since = (rank, self._t_last)
+        stalled = self._t_last - self._rank_since[1]
+        waits = [] if stalled >= self.STEADY_S else [f"no new direction learnt for {stalled:.0f} s"]
+        if self._has_temp and self._steady_s < self.STEADY_S:
+            waits.append(f"the temperature within {self.STEADY_BAND_C:g} degC for {self._steady_s:.0f} s")
+        if waits:
+            return (f"; a constant alone is learnt first once, for {self.STEADY_S:.0f} s, the data adds no "
+                    f"direction{' and the temperature stays put' if self._has_temp else ''} "
+                    f"({', '.join(waits)} so far)")
         lr.cold_ready = True
         lo, hi = self.temp_seen or (float("nan"), float("nan"))
-        log.info("unit %s: the temperature has stayed within %g degC for %.0f s (%.1f..%.1f degC seen) and "
-                 "the unit holds no set: learning its constant alone, temperature terms 0, until the "
-                 "temperature moves", self.hello.serial, self.STEADY_BAND_C, self._steady_s, lo, hi)
+        seen = f", {lo:.1f}..{hi:.1f} degC" if self._has_temp else ""
+        log.info("unit %s: no new direction learnt for %.0f s (rank %d of %d, %d poses%s) and the unit "
+                 "holds no set: learning its constant alone, every other term 0, until the data reaches "
+                 "the rank", self.hello.serial, stalled, rank, lr.full_rank, len(self.poses), seen)
         return ""
 
     def heard(self, t_unit: float) -> None:
