@@ -16,8 +16,13 @@ Noise terms read off the deviation sigma(tau) [deg/s]:
     rate random walk    K [deg/s/sqrt(s)]: sigma = K sqrt(tau / 3), read at tau = 3 s
 
 ``read_noise_terms`` fits ARW and RRW as lines of fixed slope (-1/2, +1/2) in log-log through the
-points of the curve whose local slope is closest to that value (the allan_variance_ros / imu_utils
-recipe); the error bar of each read-off comes from the chi-squared interval of the points it used.
+points of the curve whose local slope is close to that value (the allan_variance_ros / imu_utils
+recipe): for ARW the run of such points nearest tau = 1 s, within a factor 2 of it, so a coloured
+sensor's short-tau hump (a DLPF, a Gauss-Markov part) does not pull the line down (it read 37 % low
+on a Gauss-Markov sensor with T = 20 ms, an outside check). A term whose slope the curve never shows
+(no +1/2 rise, no floor before the curve ends) is not read: its value is NaN (null in JSON), ``seen``
+is False and ``hi`` bounds it from above. The error bar of a read-off is the chi-squared interval of
+its best point (overlapping taus are not independent estimates, so their edf are not summed).
 ``fit_noise_terms`` fits the three jointly (better where a walk rises out of a flicker floor). Multiply by
 3600 for deg/h, by 60 for deg/sqrt(h) (N), by 3600 * 60 for deg/h/sqrt(h) (K).
 """
@@ -73,9 +78,12 @@ class NoiseTerm:
     hi: float
     tau_s: tuple[float, ...]
     """The taus [s] whose points the value was read from."""
+    seen: bool = True
+    """False: the curve does not show this term's slope; ``value`` is NaN and ``hi`` an upper bound."""
 
     def as_dict(self) -> dict:
-        return {"value": self.value, "lo": self.lo, "hi": self.hi, "tau_s": list(self.tau_s)}
+        return {"value": self.value, "lo": self.lo, "hi": self.hi, "tau_s": list(self.tau_s),
+                "seen": self.seen}
 
 
 @dataclass(frozen=True)
@@ -83,7 +91,7 @@ class NoiseTerms:
     """IEEE 952 read-off of one axis: N (ARW), B (bias instability), K (rate random walk).
 
     Units for a series in deg/s: N deg/sqrt(s), B deg/s, K deg/s/sqrt(s). A term whose slope the
-    curve never shows is still read (the line closest to it), so compare it with the curve.
+    curve never shows is not read (``NoiseTerm.seen``).
     """
 
     arw: NoiseTerm
@@ -203,47 +211,92 @@ def allan_curve(y: np.ndarray, rate_hz: float, max_tau_s: float | None = None,
     return AllanCurve(tau, dev, lo, hi, edf, alpha, m, nt, ci)
 
 
-def _slope_line(curve: AllanCurve, slope: float, at_tau_s: float, region: np.ndarray) -> NoiseTerm:
-    """Value at ``at_tau_s`` of the line of fixed log-log ``slope`` through the best-matching points.
+SLOPE_TOL = 0.25
+"""How far [log-log slope] a point's local slope may be from a term's own slope to be read with it."""
+ARW_SPAN = 2.0
+"""ARW is read from points within this factor of the -1/2 run's tau nearest 1 s."""
+FLOOR_POINTS = 3
+"""Octave points in a row whose local slope is flat (within SLOPE_TOL of 0) that show a bias
+instability floor; a white-noise-and-walk bathtub is flat at one or two."""
+HUMP_FALL = 0.5
+"""A flat stretch the curve later falls below this fraction of (by a point's 95 % upper bound) is a
+hump (coloured noise), not a floor."""
 
-    The points are those (within ``region``) whose local slope is within 0.25 of ``slope``; if none,
-    the single point closest to that slope. Their log-offsets are averaged with weights edf, and the
-    interval is the chi-squared interval with the summed edf (the points are treated as independent
-    estimates of one line, which is slightly optimistic for overlapping taus).
-    """
+
+def _runs(mask: np.ndarray) -> list[np.ndarray]:
+    """Index runs of consecutive True in ``mask``."""
+    idx = np.flatnonzero(mask)
+    return [r for r in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if r.size] if idx.size else []
+
+
+def _line(curve: AllanCurve, slope: float, at_tau_s: float, pick: np.ndarray) -> NoiseTerm:
+    """Value at ``at_tau_s`` of the line of fixed log-log ``slope`` through the points ``pick``: their
+    log-offsets averaged with weights edf; the interval is the chi-squared one of the point with the
+    most edf (the points are overlapping estimates of one line, not independent ones)."""
     lt, ld = np.log(curve.tau_s), np.log(curve.adev)
-    idx = np.flatnonzero(region)
-    if idx.size == 0:
-        return NoiseTerm(float("nan"), float("nan"), float("nan"), ())
-    if idx.size == 1:
-        pick = idx
-    else:
-        local = np.gradient(ld[idx], lt[idx])
-        close = np.abs(local - slope)
-        pick = idx[close <= 0.25] if (close <= 0.25).any() else idx[[int(np.argmin(close))]]
     w = curve.edf[pick]
     offset = float(np.sum(w * (ld[pick] - slope * lt[pick])) / np.sum(w))
     value = math.exp(offset + slope * math.log(at_tau_s))
-    lo, hi = chi2_interval(np.array([value]), np.array([float(np.sum(w))]), curve.ci)
+    lo, hi = chi2_interval(np.array([value]), np.array([float(np.max(w))]), curve.ci)
     return NoiseTerm(value, float(lo[0]), float(hi[0]), tuple(float(t) for t in curve.tau_s[pick]))
+
+
+def _local_slopes(curve: AllanCurve) -> np.ndarray:
+    return np.gradient(np.log(curve.adev), np.log(curve.tau_s)) if curve.tau_s.size > 1 else np.zeros(1)
 
 
 def read_noise_terms(curve: AllanCurve) -> NoiseTerms:
     """N, B, K of one axis from its Allan curve (module docstring for the definitions).
 
-    ARW: slope -1/2 at tau = 1 s, from taus up to the curve's minimum. RRW: slope +1/2 at tau = 3 s,
-    from taus beyond the minimum (or the last point). B: the minimum / 0.664, with that point's
-    interval.
+    B: the minimum / 0.664, with that point's interval, when the curve shows a floor (FLOOR_POINTS
+    flat points in a row, not a hump the curve falls far below later). ARW: slope -1/2 at tau = 1 s,
+    from the run of -1/2 points before the floor (or up to the minimum) nearest 1 s, within a factor
+    ARW_SPAN of it; with no such point, the point whose slope is closest. RRW: slope +1/2 at
+    tau = 3 s, from the points beyond the minimum whose local slope is +1/2 or which lie above it by
+    their 95 % intervals; none, and it is not seen.
     """
+    nan = NoiseTerm(float("nan"), float("nan"), float("nan"), ())
     if curve.tau_s.size == 0:
-        nan = NoiseTerm(float("nan"), float("nan"), float("nan"), ())
         return NoiseTerms(nan, nan, nan)
+    n = curve.tau_s.size
     i_min = int(np.argmin(curve.adev))
-    k = np.arange(curve.tau_s.size)
-    arw = _slope_line(curve, -0.5, 1.0, k <= max(i_min, 0))
-    rrw = _slope_line(curve, 0.5, 3.0, k >= min(i_min, k.size - 1))
+    k = np.arange(n)
+    local = _local_slopes(curve)
+    lt = np.log(curve.tau_s)
+    # the first floor: FLOOR_POINTS flat points in a row that the curve does not fall far below later
+    # (a coloured sensor's short-tau hump or plateau is followed by the white noise's fall)
+    lo95, hi95 = chi2_interval(curve.adev, curve.edf, 0.95)
+    floors = [r for r in _runs(np.abs(local) <= SLOPE_TOL) if r.size >= FLOOR_POINTS
+              and not (r[-1] + 1 < n and hi95[r[-1] + 1:].min() < HUMP_FALL * curve.adev[r].min())]
+    floor = floors[0] if floors else None
+    # ARW: before the floor (or up to the minimum)
+    region = k < floor[0] if floor is not None else k <= i_min
+    if not region.any():
+        region = k == 0
+    runs = _runs(region & (np.abs(local + 0.5) <= SLOPE_TOL))
+    if runs:
+        run = min(runs, key=lambda r: float(np.min(np.abs(lt[r]))))  # the run reaching nearest 1 s
+        centre = run[int(np.argmin(np.abs(lt[run])))]
+        pick = run[np.abs(lt[run] - lt[centre]) <= math.log(ARW_SPAN) + 1e-9]
+    else:
+        cand = np.flatnonzero(region)
+        pick = cand[[int(np.argmin(np.abs(local[cand] + 0.5)))]]
+    arw = _line(curve, -0.5, 1.0, pick)
+    # B: the minimum / 0.664 when the curve shows a floor; else the minimum is only an upper bound
+    # (white noise alone read 1.79 deg/h: an outside check)
     b = NoiseTerm(float(curve.adev[i_min] / FLICKER_FLOOR), float(curve.lo[i_min] / FLICKER_FLOOR),
                   float(curve.hi[i_min] / FLICKER_FLOOR), (float(curve.tau_s[i_min]),))
+    if floor is None:
+        b = NoiseTerm(float("nan"), 0.0, b.hi, b.tau_s, seen=False)
+    # RRW: a +1/2 rise past the minimum (points of that slope, or points above the minimum by their
+    # 95 % intervals), else the +1/2 line through the last point's upper bound
+    rise = np.flatnonzero((k > i_min) & ((np.abs(local - 0.5) <= SLOPE_TOL) | (lo95 > hi95[i_min])))
+    if rise.size:
+        rrw = _line(curve, 0.5, 3.0, rise)
+    else:
+        last = n - 1
+        bound = float(curve.hi[last] * math.sqrt(3.0 / curve.tau_s[last]))
+        rrw = NoiseTerm(float("nan"), 0.0, bound, (float(curve.tau_s[last]),), seen=False)
     return NoiseTerms(arw, b, rrw)
 
 
