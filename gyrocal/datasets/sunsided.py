@@ -12,12 +12,14 @@ recording is therefore re-timed to its sample clock: a straight line of t agains
 index (``gyrocal.analysis.timestamps``), after sorting by t (the rows are already in order). The
 metadata key ``retimed`` records the clock rate, the share of bursty intervals and the largest lag.
 
-Accelerometer sign: the files hold the gravity vector, not the specific force of Contract 1. The
-recording with x pointing up reads acc_x -0.996 g, and the one with y pointing down acc_y +1.013 g
-(an outside check noticed az -1.03 g on recordings whose README draws z up). The loader negates
-acc_* so that the up axis reads +1 g, as every other reader gives it; the metadata says so. The
-analysis' findings do not change (the fit's gravity terms change sign, and their products do not),
-but a term set fitted on the converted log now holds for a unit that reports specific force.
+Accelerometer sign: the two sets were logged with different conventions, and Contract 1 wants the
+specific force (the up axis reads +1 g). Set 2 (the ``unmoved-with-*`` folders) holds the gravity
+vector: z up reads acc_z -1.034 g, x up acc_x -0.996 g, y down acc_y +1.013 g; the loader negates
+acc_x, acc_y and acc_z. Set 1 (``set1-*``) holds the specific force with x flipped, as the dataset's
+README for set 1 says: z up reads acc_z +1.037 g and x up acc_x -0.996 g; the loader negates acc_x
+alone. The gyro x is not flipped there: its bias is +4.54 deg/s in both sets. (An earlier loader
+negated every recording, so set 1's z-up recording read -1.04 g beside set 2's +1.03 g in the same
+orientation: an outside check.) The metadata says what was done to each recording.
 """
 
 from __future__ import annotations
@@ -30,6 +32,14 @@ from gyrocal.analysis.timestamps import retime
 from gyrocal.datasets._common import data_dir, make_log, read_table
 from gyrocal.errors import LogFormatError
 from gyrocal.logformat import LogData
+
+SET1_PREFIX = "set1-"
+"""Folders of the dataset's set 1 (specific force, x flipped); the others are set 2 (gravity vector)."""
+
+
+def accel_signs(folder: str) -> np.ndarray:
+    """Per-axis factors (3,) that turn a recording's acc_* into specific force [g] (module docstring)."""
+    return np.array([-1.0, 1.0, 1.0]) if folder.startswith(SET1_PREFIX) else np.array([-1.0, -1.0, -1.0])
 
 
 def _one(p: Path) -> tuple[np.ndarray, dict]:
@@ -63,5 +73,11 @@ def load_sunsided(path: str | Path | None = None) -> LogData:
                                 f"intervals, lag <= {n['max_lag_s']:g} s"
                                 for i, (_, n) in enumerate(parts) if n)
             or "no (time stamps regular)",
-            "accel_sign": "negated: the files hold the gravity vector (x up reads -1 g); here +1 g is up"}
-    return make_log(tab[:, 0], tab[:, 4:7], -tab[:, 1:4], str(p), meta, temp=tab[:, 7], session=session)
+            "accel_sign": ";".join(f"{i}=" + ("acc_x negated (set 1: specific force, x flipped)"
+                                              if f.parent.name.startswith(SET1_PREFIX)
+                                              else "negated (set 2: the gravity vector)")
+                                   for i, f in enumerate(files))}
+    signs = np.vstack([np.tile(accel_signs(f.parent.name), (len(tb), 1))
+                       for f, tb in zip(files, tabs, strict=True)])
+    return make_log(tab[:, 0], tab[:, 4:7], signs * tab[:, 1:4], str(p), meta, temp=tab[:, 7],
+                    session=session)
