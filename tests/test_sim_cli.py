@@ -37,6 +37,9 @@ def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
          "cannot be opened"),
         (["--pty-link", "/nonexistent-dir/gyro0"], "--pty-link"),
         (["--flash", "/etc"], "--flash"),
+        (["--ambient", "20,warm"], "--ambient"),
+        (["--rise", "-1"], "--rise"),
+        (["--warmup-tau", "0"], "--warmup-tau"),
     ],
 )
 def test_sim_broken_config_gives_one_line_error_and_exit_2(
@@ -86,6 +89,18 @@ def test_sim_record_writes_contract1_log_and_truth_and_is_deterministic(tmp_path
     assert abs(resid.mean()) < 1e-3 and resid.std() < 5e-3
     assert a.read_text() == b.read_text()
     assert a.read_text() != c.read_text()
+
+
+def test_sim_temperature_course_per_switch_on_on_the_serial_unit(tmp_path: Path) -> None:
+    """--ambient, --rise and --warmup-tau shape the unit's temperature, one ambient per switch-on (an
+    outside check found them silently ignored off MAVLink: every switch-on warmed 25 -> 33 degC alike,
+    so temperature, its rate and a warm-up could not be told apart in a recording)."""
+    (a,) = _record_all(tmp_path, {"t.csv": ("--power-cycle-every", "0.5", "--ambient", "20,35", "--rise",
+                                           "10", "--warmup-tau", "0.2")})
+    log = read_log(a)
+    first, second = log["temp"][log["session"] == 1], log["temp"][log["session"] == 2]
+    assert 20.0 <= first.min() < 21.0 and 29.0 < first.max() < 30.0
+    assert 35.0 <= second.min() < 36.0 and 44.0 < second.max() < 45.0
 
 
 def test_sim_status_json_symlink_and_sigterm_exit_cleanly(tmp_path: Path) -> None:

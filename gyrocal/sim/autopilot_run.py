@@ -199,24 +199,25 @@ def configure(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--warmup-tau",
         type=float,
-        default=120.0,
+        default=None,
         metavar="S",
-        help="warm-up time constant [s] of the 30 degC rise (default 120)",
+        help="warm-up time constant [s] of the temperature's rise (default: 120 for an autopilot, the "
+        "grade's for a unit)",
     )
     g.add_argument(
         "--ambient",
         default="",
         metavar="C[,C...]",
-        help="the board's temperature at each boot of this run [degC], in order, the last repeating "
-        "(default 20); each warm-up rises --rise degC from it",
+        help="the temperature at each switch-on of this run [degC], in order, the last repeating "
+        "(default: 20 for an autopilot, 25 for a unit); each warm-up rises --rise degC from it",
     )
     g.add_argument(
         "--rise",
         type=float,
-        default=30.0,
+        default=None,
         metavar="C",
-        help="the warm-up's rise [degC] (default 30; 0: a board held at its ambient from switch-on, as an "
-        "IMU heater holds its set point)",
+        help="the warm-up's rise [degC] (default: 30 for an autopilot, the grade's for a unit; 0: held at "
+        "its ambient from switch-on, as an IMU heater holds its set point)",
     )
     g.add_argument(
         "--rotation",
@@ -245,11 +246,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     )
 
 
-def main(args: argparse.Namespace) -> int:
-    faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets)
-    if args.warmup_tau <= 0:
+def thermal_args(args: argparse.Namespace) -> tuple[tuple[float, ...], float | None, float | None]:
+    """``--ambient`` [degC per switch-on], ``--rise`` [degC] and ``--warmup-tau`` [s], checked (None:
+    not given, the link's own default). Raises ConfigError naming the option."""
+    if args.warmup_tau is not None and not (math.isfinite(args.warmup_tau) and args.warmup_tau > 0):
         raise ConfigError("--warmup-tau must be > 0 s")
-    if not math.isfinite(args.rise) or args.rise < 0:
+    if args.rise is not None and not (math.isfinite(args.rise) and args.rise >= 0):
         raise ConfigError("--rise must be a finite number of degC >= 0")
     try:
         ambients = tuple(float(a) for a in args.ambient.split(",") if a.strip())
@@ -257,12 +259,21 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"--ambient {args.ambient!r}: write degC values separated by commas, e.g. 20,30"
         ) from err
+    if not all(math.isfinite(a) for a in ambients):
+        raise ConfigError(f"--ambient {args.ambient!r}: give finite degC values")
+    return ambients, args.rise, args.warmup_tau
+
+
+def main(args: argparse.Namespace) -> int:
+    faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets)
+    ambients, rise, tau = thermal_args(args)
     ap = VirtualAutopilot(
         args.autopilot,
         args.rate,
         args.seed,
         faults=faults,
-        thermal=Thermal(ambient_c=20.0, rise_c=args.rise, tau_s=args.warmup_tau),
+        thermal=Thermal(ambient_c=20.0, rise_c=30.0 if rise is None else rise,
+                        tau_s=120.0 if tau is None else tau),
         ambients_c=ambients,
     )
     if args.flash and Path(args.flash).exists():

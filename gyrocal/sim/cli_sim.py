@@ -30,6 +30,7 @@ import numpy as np
 from gyrocal.errors import ConfigError
 from gyrocal.model.terms import read_terms_file
 from gyrocal.protocol import termsets
+from gyrocal.sim.autopilot_run import thermal_args
 from gyrocal.sim.grades import grade_truth
 from gyrocal.sim.recorder import Recorder
 from gyrocal.sim.runner import Runner
@@ -253,7 +254,13 @@ def main(args: argparse.Namespace) -> int:
     truth = set_effects(truth, args.effect)
     if args.latitude is not None:
         truth = dataclasses.replace(truth, latitude_deg=args.latitude, heading_deg=args.heading)
-    unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults)
+    # the temperature course (an outside check found them silently ignored here: every switch-on warmed
+    # alike, so T, dT/dt and a warm-up could not be told apart in a recording)
+    ambients, rise, tau = thermal_args(args)
+    th = truth.thermal
+    truth = dataclasses.replace(truth, thermal=dataclasses.replace(
+        th, rise_c=th.rise_c if rise is None else rise, tau_s=th.tau_s if tau is None else tau))
+    unit = VirtualUnit(truth, schedule, args.rate, args.seed, args.serial, faults=faults, ambients_c=ambients)
     _load_flash(unit, args.flash)
     transport = _open_transport(args)
     recorder = None

@@ -20,7 +20,7 @@ NAKs, lost acks and a silent switch-on.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -133,9 +133,11 @@ class VirtualUnit:
     def __init__(
         self, truth: TruthModel, schedule: Schedule, rate_hz: float, seed: int, serial: int,
         *, fw_version: str = "1.0.0", faults: Faults | None = None, boot_count: int = 0,
-        applied: AppliedSet | None = None,
+        applied: AppliedSet | None = None, ambients_c: tuple[float, ...] = (),
     ) -> None:
         self.truth, self.schedule, self.rate_hz = truth, schedule, float(rate_hz)
+        self.ambients_c = tuple(float(a) for a in ambients_c)  # [degC] per switch-on, the last repeating
+        self._boots_here = 0
         self.seed, self.serial, self.fw_version = int(seed), int(serial), fw_version
         self.faults = faults or Faults()
         self.boot_count = int(boot_count)
@@ -150,6 +152,10 @@ class VirtualUnit:
     def power_on(self) -> list[Any]:
         """Switch on: count the boot, start a new session (new bias); return the HELLO to send."""
         self.boot_count += 1
+        if self.ambients_c:  # this switch-on's ambient temperature (--ambient)
+            amb = self.ambients_c[min(self._boots_here, len(self.ambients_c) - 1)]
+            self.truth = replace(self.truth, thermal=replace(self.truth.thermal, ambient_c=amb))
+        self._boots_here += 1
         self.stream = SessionStream(self.truth, self.schedule, self.rate_hz, self.seed, self.boot_count)
         self._trate = termsets.TempRate()  # dtemp as protocol.md defines it, from this switch-on
         return self._hello()
