@@ -17,10 +17,13 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from gyrocal.analysis.engine import analyze
 from gyrocal.analysis.extend import write_spec
 from gyrocal.errors import GyrocalError
 from gyrocal.model.cli_fit import no_data_error
+from gyrocal.model.still import missing_samples
 from gyrocal.readers import accounting, add_arguments, read_from_args
 
 
@@ -53,6 +56,13 @@ def main(args: argparse.Namespace) -> int:
             print(f"analyze [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     log = read_from_args(args.log, args)
+    if len(log) and "t" in log.columns and "session" in log.columns:
+        missing = missing_samples(np.asarray(log["t"], dtype=float),
+                                  np.asarray(log["session"], dtype=float))
+        if missing:  # a regular clock with rows missing: the rate counts them (model/still.py)
+            log.warnings.append(f"{missing} samples are missing from a regular clock (intervals of 2 or "
+                                "more sample periods); the rate counts them, and the Allan curve closes "
+                                "the gaps")
     for w in log.warnings:
         print(f"gyrocal: warning: {w}", file=sys.stderr)
     if log.dropped:
