@@ -228,7 +228,7 @@ def read_log(path: str | Path, rename: Mapping[str, str] | None = None,
             + ", ".join(f"{c} {k}" for c, k in by_column.items())
             + ("; an optional column (temp, ref_w*, ...) can be left out of the file, or filled"
                if set(by_column) - set(REQUIRED) else ""))
-    log.warnings.extend(units_warnings(log))
+    log.warnings.extend(units_warnings(log, declared))
     return log
 
 

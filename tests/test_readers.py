@@ -379,8 +379,14 @@ def test_a_kelvin_temperature_and_a_column_typo_are_said(tmp_path: Path) -> None
     write_log(f, cols)
     assert not read_log(f).warnings
     cols["t"] = np.arange(n) * 10.0  # 100 Hz in ms, read as s
-    write_log(f, cols)
+    rows = "\n".join(",".join(f"{cols[c][i]:g}" for c in cols) for i in range(n))
+    f.write_text(",".join(cols) + "\n" + rows + "\n")  # no '# units:' line
     assert any("looks like a time column in ms" in w for w in read_log(f).warnings)
+    # a file that says its time is in s is taken at its word: gyrocal convert's own 2 Hz ArduSub log
+    # was warned of as ms (an outside check)
+    cols["t"] = np.arange(n) * 0.5
+    write_log(f, cols)  # writes '# units: ... time=s'
+    assert not any("time column" in w for w in read_log(f).warnings)
     with pytest.raises(ConfigError, match="'tmp' is not one of our columns"):
         options_from_args(Namespace(columns="t=time,tmp=temp_K", units=None))
 

@@ -86,7 +86,7 @@ class CsvStream:
                 convert_columns(cols, self.units)
                 self._check_order(cols, prev, lineno)
                 if self.rows == 0 and table.shape[0]:
-                    self.warnings.extend(units_warnings(LogData(cols, source=name)))
+                    self.warnings.extend(units_warnings(LogData(cols, source=name), self.units))
                 self.rows += table.shape[0]
                 yield cols
 

@@ -134,9 +134,13 @@ def time_units_warning(log: object) -> str | None:
             f"time={guess} or write '# units: time={guess}' in the header (docs/logformat.md)")
 
 
-def units_warnings(log: object) -> list[str]:
+def units_warnings(log: object, declared: Mapping[str, str] | None = None) -> list[str]:
     """Every units warning for a log's columns (accel, temperature, time): what the whole-file and
-    the streaming CSV readers both add."""
-    found = (looks_like_si(log), temperature_units_warning(log), time_units_warning(log))
+    the streaming CSV readers both add. A time unit the file or the user declared (``declared``) is
+    taken as said: gyrocal convert's own 2 Hz ArduSub log, whose header says time=s, was warned of as
+    "looks like ms" (an outside check); a slow log in seconds and a fast one in ms overlap near 1 s."""
+    time_said = bool(declared) and "time" in declared
+    found = (looks_like_si(log), temperature_units_warning(log),
+             None if time_said else time_units_warning(log))
     return [w for w in found if w]
 
