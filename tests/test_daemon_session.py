@@ -158,6 +158,57 @@ def test_a_unit_mounted_at_one_pose_with_no_stored_set_gets_its_bias(tmp_path: P
         assert after[a] * 5 <= before[a], (a, before[a], after[a])
 
 
+def test_an_ack_no_push_waits_for_makes_the_session_read_the_unit_s_set_again(tmp_path: Path) -> None:
+    """An integrator's unit acked 3 s after a write; the daemon, restarted meanwhile, had closed that
+    push as abandoned and read back the old set. The late ack was ignored: status said "the unit holds
+    v1, as the store says" while the unit held v2. Now the stray ack makes the session read again,
+    and the read-back of v2 records it as applied (ack lost)."""
+    from gyrocal.daemon.store import CalibrationRecord
+    from gyrocal.protocol.messages import CoeffWrite
+    from gyrocal.protocol.termsets import terms_id
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    h.run(2)
+    s = h.session
+    assert s is not None and s.last_push.get("status") == "acked" and s.applied.version == 1
+    v1 = h.store.latest(4242)
+    coeffs = np.asarray(v1.coefficients_dps) + 0.001
+    h.store.add(CalibrationRecord(serial=4242, version=0, terms=list(v1.terms),
+                                  coefficients_dps=coeffs.tolist(), uncertainty_dps=v1.uncertainty_dps,
+                                  identifiable={}, stats={}, session={}, push={"status": "abandoned"}))
+    (ack,) = h.unit.handle(CoeffWrite(2, terms_id(list(v1.terms)), coeffs))  # applied late, behind our back
+    s.on_message(ack, h.now)
+    h.run(2)
+    assert s.applied is not None and s.applied.version == 2
+    assert s.agreement.get("agree") and h.store.get(4242, 2).push["status"] == "applied_ack_lost"
+
+
+def test_an_unknown_terms_nak_for_the_term_set_the_unit_holds_is_tried_again(tmp_path: Path) -> None:
+    """An integrator's unit NAKed UNKNOWN_TERMS once for the very term set it reported holding; taken
+    as final, it kept the last boot's set (105 / 90 / 51 deg/h) for the whole switch-on."""
+    from gyrocal.protocol.messages import CoeffNak, CoeffWrite, NakReason
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    unit_handle, naked = h.unit.handle, []
+
+    def handle(msg):  # noqa: ANN001, ANN202
+        if isinstance(msg, CoeffWrite) and not naked:
+            naked.append(msg.version)
+            return [CoeffNak(msg.version, 0, int(NakReason.UNKNOWN_TERMS))]
+        return unit_handle(msg)
+
+    h.unit.handle = handle  # type: ignore[method-assign]
+    h.switch_on()  # the next switch-on's bias stage hits the refusal
+    h.run(60, until=lambda hh: hh.session is not None and hh.session.last_push.get("status") == "acked")
+    s = h.session
+    assert naked and s is not None and s.last_push.get("status") == "acked", s.reason
+    assert s.last_push["version"] == naked[0]  # the same version, tried again
+
+
 def test_monitoring_raises_a_drift_alarm_when_the_residual_grows(tmp_path: Path) -> None:
     h = Harness.make(tmp_path)
     h.switch_on()

@@ -80,7 +80,7 @@ from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
-from gyrocal.protocol.messages import SEQ_MODULO, CoeffReport, CoeffWrite, Hello, NakReason
+from gyrocal.protocol.messages import SEQ_MODULO, CoeffAck, CoeffReport, CoeffWrite, Hello, NakReason
 from gyrocal.protocol.termsets import TempRate, names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
@@ -172,6 +172,8 @@ class Session(RecoveryMixin):
     MAX_POSES = 64
     BIAS_MIN_S = 1.0
     """Seconds of still samples before a bias-only set may be pushed."""
+    CONTRADICTED_MAX = 3
+    """UNKNOWN_TERMS NAKs for the term set the unit reports holding that are tried again, not final."""
     STEADY_S = 60.0
     STEADY_BAND_C = 0.5
     """A cold start learns a constant alone once its data has stopped adding directions for STEADY_S
@@ -248,6 +250,7 @@ class Session(RecoveryMixin):
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
+        self._contradicted = 0  # UNKNOWN_TERMS NAKs for a term set the unit reports holding
         self._said_converged = False  # the "estimator converged" line of this stretch was logged
         self._held_has_north = False  # the held set was pushed before north was found (_north_found)
         self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
@@ -288,6 +291,16 @@ class Session(RecoveryMixin):
                 return
         if isinstance(msg, CoeffReport):
             self.on_report(msg, now)
+        elif isinstance(msg, CoeffAck) and self.push is None and self.applied is not None:
+            # an ack no push waits for: the unit applied a set late (after this daemon restarted
+            # mid-push, or after the push had timed out), so its set is not the one learning assumes.
+            # It was ignored, and status said "the unit holds v1, as the store says" while the unit
+            # held v2 (an integrator's audit): read the set again, learning paused until it answers
+            log.warning("unit %s: an ack of v%d arrived with no push waiting for it (the unit applied a "
+                        "set late?): reading the unit's set again", self.hello.serial, msg.version)
+            self.applied, self._switch = None, None
+            self._read_asks = 0
+            self.request_read(now)
 
     def on_report(self, msg: CoeffReport, now: float) -> None:
         """The unit's set: checked, reconciled with the store, then the base of learning."""
@@ -661,9 +674,12 @@ class Session(RecoveryMixin):
             if now >= self._read_deadline:
                 # a link that takes no sends is the link's fault, said once by _send: not the unit's
                 if self._read_asks == self.READ_WARN_AFTER and not self._link_warned:
-                    log.warning("unit %s has not answered %d COEFF_READs: counting samples but not learning "
-                                "(learning needs the set the unit applies); asking again, less often",
-                                self.hello.serial, self._read_asks)
+                    # a report refused (NaN, bad CRC) is an answer, not silence (an integrator's audit)
+                    what = (f"answered {self._read_asks} COEFF_READs only with reports that cannot be used "
+                            f"({self.refused_reports} refused)" if self.refused_reports
+                            else f"not answered {self._read_asks} COEFF_READs")
+                    log.warning("unit %s has %s: counting samples but not learning (learning needs the set "
+                                "the unit applies); asking again, less often", self.hello.serial, what)
                 if self._link_warned:
                     self.reason = "the link takes no sends: the unit's set is read again when it returns"
                 elif self._read_asks >= self.READ_WARN_AFTER and not self.refused_reports:
@@ -1066,9 +1082,22 @@ class Session(RecoveryMixin):
                          self.hello.serial, version, result.status)
                 self.operator_hold = None
             self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
-            if result.nak_reason == int(NakReason.UNKNOWN_TERMS):  # final: no new version would help
-                names = self._pending[0]
-                tid = terms_id(names)
+            transient = result.transient
+            names = self._pending[0]
+            tid = terms_id(names)
+            held = self.applied is not None and self.applied.terms_id == tid
+            if result.nak_reason == int(NakReason.UNKNOWN_TERMS) and held \
+                    and self._contradicted < self.CONTRADICTED_MAX:
+                # the unit reports holding this very term set: its refusal contradicts itself (a glitch,
+                # a unit busy rebuilding its table). Taken as final, it left the unit on the last boot's
+                # set, 105 deg/h off, for the whole switch-on (an integrator's audit): tried again
+                self._contradicted += 1
+                transient = True
+                log.warning("unit %s: NAK UNKNOWN_TERMS to v%d for term set 0x%04X, which the unit reports "
+                            "holding (v%d): taken as a passing refusal, tried again (%d of %d)",
+                            self.hello.serial, version, tid, self.applied.version, self._contradicted,
+                            self.CONTRADICTED_MAX)
+            elif result.nak_reason == int(NakReason.UNKNOWN_TERMS):  # final: no new version would help
                 self.reason = (f"the unit does not know term set 0x{tid:04X} ({len(names)} terms: "
                                f"{','.join(names)}): NAK UNKNOWN_TERMS to v{version}, so it keeps its set "
                                "and this set is not pushed again this session; configure estimator.terms "
@@ -1087,7 +1116,7 @@ class Session(RecoveryMixin):
                 log.error("unit %s: %s", self.hello.serial, self.range_hold)
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             self.state = State.COLLECTING
-            if result.transient:  # BUSY, silence, link down: the same record again later
+            if transient:  # BUSY, silence, link down: the same record again later
                 rnd = self._retry_round + 1
                 delay = min(self.RETRY_BACKOFF_S * 2.0 ** (rnd - 1), self.RETRY_BACKOFF_MAX_S)
                 names, coeffs = self._pending
