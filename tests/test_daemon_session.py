@@ -178,6 +178,10 @@ def test_an_ack_no_push_waits_for_makes_the_session_read_the_unit_s_set_again(tm
     h.store.add(CalibrationRecord(serial=4242, version=0, terms=list(v1.terms),
                                   coefficients_dps=coeffs.tolist(), uncertainty_dps=v1.uncertainty_dps,
                                   identifiable={}, stats={}, session={}, push={"status": "abandoned"}))
+    from gyrocal.protocol.messages import CoeffAck
+
+    s.on_message(CoeffAck(37, 0x12345678), h.now)  # bus garbage: an ack of no stored set is counted
+    assert s.applied is not None and s.applied.version == 1 and s.stray_acks == 1
     (ack,) = h.unit.handle(CoeffWrite(2, terms_id(list(v1.terms)), coeffs))  # applied late, behind our back
     s.on_message(ack, h.now)
     h.run(2)

@@ -75,6 +75,7 @@ from gyrocal.daemon.earth_track import EarthTrack
 from gyrocal.daemon.learner import Learner
 from gyrocal.daemon.poses import PoseLog
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
+from gyrocal.daemon.reconcile import record_crc
 from gyrocal.daemon.session_recovery import RecoveryMixin
 from gyrocal.daemon.store import CalibrationRecord, utc_now
 from gyrocal.model.earth import vertical_earth_rate_dps
@@ -251,6 +252,7 @@ class Session(RecoveryMixin):
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
         self._contradicted = 0  # UNKNOWN_TERMS NAKs for a term set the unit reports holding
+        self.stray_acks = 0  # acks no push waited for, of no stored set (bus garbage, another host)
         self._said_converged = False  # the "estimator converged" line of this stretch was logged
         self._held_has_north = False  # the held set was pushed before north was found (_north_found)
         self.unconfirmed: str | None = None  # why the unit's identity is a guess (no HELLO yet), or None
@@ -291,16 +293,29 @@ class Session(RecoveryMixin):
                 return
         if isinstance(msg, CoeffReport):
             self.on_report(msg, now)
-        elif isinstance(msg, CoeffAck) and self.push is None and self.applied is not None:
-            # an ack no push waits for: the unit applied a set late (after this daemon restarted
-            # mid-push, or after the push had timed out), so its set is not the one learning assumes.
-            # It was ignored, and status said "the unit holds v1, as the store says" while the unit
-            # held v2 (an integrator's audit): read the set again, learning paused until it answers
+        elif isinstance(msg, CoeffAck) and self.push is None and self.applied is not None \
+                and self._stored_set_acked(msg):
+            # an ack no push waits for, of a set this store wrote: the unit applied it late (after this
+            # daemon restarted mid-push, or after the push had timed out), so its set is not the one
+            # learning assumes. It was ignored, and status said "the unit holds v1, as the store says"
+            # while the unit held v2 (an integrator's audit): read the set again, learning paused until
+            # it answers. An ack of a set the store does not know (bus garbage) is only counted
             log.warning("unit %s: an ack of v%d arrived with no push waiting for it (the unit applied a "
                         "set late?): reading the unit's set again", self.hello.serial, msg.version)
             self.applied, self._switch = None, None
             self._read_asks = 0
             self.request_read(now)
+
+    def _stored_set_acked(self, ack: CoeffAck) -> bool:
+        """Whether ``ack`` names a stored version of this unit by its CRC (else it is counted)."""
+        try:
+            rec = self.store.get(self.hello.serial, ack.version) if ack.version else None
+        except Exception:  # the store is advisory here
+            rec = None
+        if rec is not None and record_crc(rec) == ack.crc:
+            return True
+        self.stray_acks += 1
+        return False
 
     def on_report(self, msg: CoeffReport, now: float) -> None:
         """The unit's set: checked, reconciled with the store, then the base of learning."""
@@ -1165,6 +1180,7 @@ class Session(RecoveryMixin):
                 "version": self.applied.version, "terms_id": self.applied.terms_id},
             "samples": self.samples, "still_samples": self.still_samples,
             "trained_samples": self.learner.samples, "dtemp_inexact_samples": self.inexact_samples,
+            "stray_acks": self.stray_acks,
             "terms": self.names,
             "coefficients_dps": finite_or_none(self.learner.coefficients),
             "uncertainty_dps": finite_or_none(self.learner.uncertainty),
