@@ -21,6 +21,7 @@ class DecoderStats:
     unanchored: CAN samples dropped because no SAMPLE_TIME anchor had given the unit time yet.
     foreign_frames: CAN frames of other nodes or other protocols on a shared bus (ignored, not errors).
     bad_values: coefficient sets under a valid CRC that hold NaN or Inf (dropped).
+    implausible: CAN samples whose time does not follow from their sequence number (dropped).
     """
 
     frames: int = 0
@@ -37,6 +38,7 @@ class DecoderStats:
     unanchored: int = 0
     foreign_frames: int = 0
     bad_values: int = 0
+    implausible: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON status output."""
@@ -45,4 +47,4 @@ class DecoderStats:
     def errors(self) -> int:
         """All rejected frames and parts (excludes gaps, which the link may cause without corruption)."""
         return (self.crc_errors + self.oversize + self.length_errors + self.unknown_types + self.incomplete
-                + self.bad_values)
+                + self.bad_values + self.implausible)

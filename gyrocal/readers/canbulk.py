@@ -24,7 +24,7 @@ import numpy as np
 
 from gyrocal.daemon.ring import SAMPLE_DTYPE
 from gyrocal.protocol.can_codec import CanCodec
-from gyrocal.protocol.can_reassembly import T20, CanDecoder
+from gyrocal.protocol.can_reassembly import CLOCK_TOL, T20, TIME_TOL, CanDecoder
 from gyrocal.protocol.messages import ACCEL_PER_G_CAN, GYRO_PER_DPS, TEMP_PER_C, US_PER_S
 from gyrocal.readers.blf import FLAG_EXT, FLAG_REMOTE, BlfFrames
 
@@ -223,7 +223,9 @@ class BulkCanDecoder:
         dt_prev = np.concatenate(([dt0], step[:-1]))
         off = t - (t_prev + dt_prev)  # the decoder's estimate is t_prev + the last period
         unwrap_ok = anch | ((off >= -(T20 // 2)) & (off < T20 // 2))
-        good = seq_ok & anchor_ok & (step > 0) & unwrap_ok
+        # feed's plausibility rule for one step (CanDecoder._plausible with delta 1)
+        plausible = (dt_prev <= 0) | (np.abs(off) <= dt_prev * (TIME_TOL + CLOCK_TOL))
+        good = seq_ok & anchor_ok & (step > 0) & unwrap_ok & plausible
         bad = np.flatnonzero(~good)
         m = int(bad[0]) if bad.size else tri.size
         m = min(m, 0xFFFFFFFF - last_seq)  # a u32 seq wrap goes through feed
