@@ -175,3 +175,31 @@ def test_free_udp_port_is_bindable() -> None:
     port = free_udp_port()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("", port))
+
+
+def test_another_hosts_frames_to_the_unit_are_counted_and_said(caplog: pytest.LogCaptureFixture) -> None:
+    """Two daemons on one bus minted the same version for different sets and overwrote each other's
+    pushes, and neither noticed (an integrator's fault campaign). Host-to-unit frames this link did
+    not send are another host's: counted, and one WARNING says so. Its own looped-back frames are not."""
+    from gyrocal.protocol.can_codec import CanCodec
+
+    channel = f"gyrocal-test-hosts-{threading.get_ident()}"
+    ring = RingBuffer(1000)
+    sink = Sink(ring)
+    link = open_link({"kind": "can", "bus": {"interface": "virtual", "channel": channel,
+                                             "receive_own_messages": True}}, ring,
+                     sink.on_control, sink.on_event)
+    other = can.Bus(interface="virtual", channel=channel)
+    try:
+        assert wait_for(lambda: link.connected, 5)
+        link.send(CoeffRead())  # looped back to its own bus (receive_own_messages): an echo
+        assert wait_for(lambda: link.stats().get("echo_frames", 0) >= 1, 5), link.stats()
+        caplog.clear()
+        for frame in CanCodec().encode(CoeffRead()):
+            other.send(frame)
+        assert wait_for(lambda: link.stats().get("other_host_frames", 0) >= 1, 5), link.stats()
+        assert link.stats()["echo_frames"] >= 1
+        assert sum("another host is talking to the unit" in r.getMessage() for r in caplog.records) == 1
+    finally:
+        other.shutdown()
+        link.stop()

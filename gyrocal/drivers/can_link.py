@@ -13,15 +13,25 @@ so the host would otherwise read its own COEFF_* frames: those are counted as ``
 other frame (another node's, another protocol's) goes to the decoder, which counts it in
 ``foreign_frames`` (or ``unknown_types`` for an unknown function code on this node's ids).
 
+Another host: a host-to-unit frame (COEFF_*, COEFF_READ, HELLO_REQUEST on this node) that this link
+did not send, or sent more times than it comes back, is another host's: counted in
+``other_host_frames``, with one WARNING a minute while they come. Two calibrators on one bus mint the
+same version numbers for different sets and overwrite each other's pushes (an integrator's fault
+campaign: the unit held daemon 1's v2 while daemon 2's store recorded its own v2 as acked); the
+daemon cannot stop the other one, so it says so.
+
 Reconnect: ``can.CanError`` or ``OSError`` from ``recv`` (an interface that went down, a USB adapter
 unplugged) shuts the bus down and reopens it with backoff.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import socket
+import threading
+import time
 from typing import Any
 
 import can
@@ -34,6 +44,10 @@ log = logging.getLogger(__name__)
 
 DRAIN_MAX = 4096
 """Frames read per wake-up before the reader yields (bounds one batch's latency)."""
+SENT_KEPT = 512
+"""Own host-to-unit frames remembered to recognise their echo (a push is at most ~130 frames)."""
+OTHER_HOST_SAY_S = 60.0
+"""At most one WARNING per this many seconds [s] about another host's frames."""
 
 
 def check_bus_kwargs(bus_kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -84,6 +98,11 @@ class CanLink(Link):
         self._echo_ids = frame_ids_sent_by(self._codec, "HOST") or frozenset()
         self._bus: can.BusABC | None = None
         self._own_echo = 0
+        self._sent: collections.Counter[tuple[int, bytes]] = collections.Counter()  # not yet echoed
+        self._sent_order: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._sent_lock = threading.Lock()
+        self.other_host_frames = 0
+        self._other_said_at = -float("inf")
 
     @property
     def target(self) -> str:
@@ -115,7 +134,7 @@ class CanLink(Link):
         budget = DRAIN_MAX
         while frame is not None:
             if accept is not None and frame.arbitration_id in echo:
-                self._own_echo += 1  # our own COEFF_* frames looped back
+                self._host_frame(frame)  # our own COEFF_* frames looped back, or another host's
             else:
                 out.extend(feed(frame))  # the unit's, or foreign (the decoder counts those)
             budget -= 1
@@ -124,18 +143,46 @@ class CanLink(Link):
             frame = bus.recv(0.0)
         return out
 
+    def _host_frame(self, frame: can.Message) -> None:
+        key = (frame.arbitration_id, bytes(frame.data))
+        with self._sent_lock:
+            own = self._sent[key] > 0
+            if own:
+                self._sent[key] -= 1
+        if own:
+            self._own_echo += 1
+            return
+        self.other_host_frames += 1
+        now = time.monotonic()
+        if now - self._other_said_at >= OTHER_HOST_SAY_S:
+            self._other_said_at = now
+            log.warning("CAN node %d: %d host-to-unit frame(s) this daemon did not send (0x%03X ...): "
+                        "another host is talking to the unit; two calibrators on one bus overwrite each "
+                        "other's sets and versions (link.other_host_frames)", self._codec.node_id,
+                        self.other_host_frames, frame.arbitration_id)
+
     def _transmit(self, msg: Any) -> None:
         bus = self._bus
         if bus is None:
             raise OSError("bus closed")
         for frame in self._codec.encode(msg):
+            key = (frame.arbitration_id, bytes(frame.data))
+            with self._sent_lock:  # what may come back as our own echo (bounded: the last SENT_KEPT)
+                self._sent[key] += 1
+                self._sent_order.append(key)
+                while len(self._sent_order) > SENT_KEPT:
+                    old = self._sent_order.popleft()
+                    if self._sent[old] > 0:
+                        self._sent[old] -= 1
+                    if self._sent[old] <= 0:
+                        del self._sent[old]
             bus.send(frame, timeout=1.0)
 
     def _decoder_stats(self) -> dict[str, int]:
         return self._decoder.stats.as_dict()
 
     def _transport_stats(self) -> dict[str, int]:
-        return {"echo_frames": self._own_echo}
+        return {"echo_frames": self._own_echo, "other_host_frames": self.other_host_frames}
 
 
 def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int = 4 << 20) -> None:
