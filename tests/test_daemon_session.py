@@ -523,3 +523,23 @@ def test_a_link_just_back_is_not_called_silent_by_the_age_of_the_sample_before_t
     assert eng.status["state"] != "UNIT_SILENT"
     eng._publish(12.5)
     assert eng.status["state"] == "UNIT_SILENT"
+
+
+def test_what_the_link_dropped_is_said_once_a_minute(tmp_path: Path,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """5000 garbage frames, 100 bad-CRC reports and thousands of implausible samples were counted and
+    never believed, but the log said nothing of them (an integrator's fault campaign)."""
+    eng = _engine_with_stub_link(tmp_path)
+    errors = {"crc_errors": 0, "implausible": 0, "seq_gaps": 0}
+    eng.link.stats = lambda: {"connected": True, "errors": dict(errors), "target": "can0"}
+    eng.link.target = "can0"
+    eng._tick(0.0)
+    errors.update(crc_errors=3, implausible=40, seq_gaps=7)  # gaps are the link's, not dropped frames
+    eng._tick(30.0)
+    assert not [r for r in caplog.records if "it dropped" in r.getMessage()]
+    eng._tick(60.0)
+    lines = [r.getMessage() for r in caplog.records if "it dropped" in r.getMessage()]
+    assert len(lines) == 1 and "crc_errors +3" in lines[0] and "implausible +40" in lines[0]
+    assert "seq_gaps" not in lines[0]
+    eng._tick(120.0)  # nothing new: no line
+    assert len([r for r in caplog.records if "it dropped" in r.getMessage()]) == 1

@@ -93,11 +93,18 @@ class Reply:
     value: dict[str, Any] = field(default_factory=dict)
 
 
+REJECTIONS = ("crc_errors", "oversize", "length_errors", "garbage_bytes", "unknown_types", "incomplete",
+              "bad_values", "implausible")
+"""The link's counters of what it dropped (DecoderStats): summed up in one line a minute."""
+
+
 class Engine(CommandsMixin):
     """Joins one link to sessions, the store, the control socket and systemd."""
 
     HELLO_ASKS_BEFORE_ADVICE = 3
     """Unanswered HELLO_REQUESTs (2 s apart) before WAIT_HELLO advises a power cycle."""
+    ERRORS_SAY_S = 60.0
+    """At most one line per this many seconds [s] on what the link dropped (``_say_link_errors``)."""
 
     def __init__(self, cfg: DaemonConfig, link_cfg: dict[str, Any] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -139,6 +146,8 @@ class Engine(CommandsMixin):
         self._last_logged_kind = ""
         self._hello_asks = 0  # HELLO_REQUESTs sent since the last HELLO
         self._next_hello_request = 0.0
+        self._errors_said: dict[str, int] = {}  # the link's rejection counters at the last summary
+        self._next_errors_check = 0.0
         self._next_publish = 0.0
         self._seq_hist: deque[tuple[int, np.ndarray]] = deque(maxlen=8)
         # sample-to-weights latency [s]: a fixed-size reservoir of the newest values (O(1) memory)
@@ -320,12 +329,31 @@ class Engine(CommandsMixin):
             return None
 
     def _tick(self, now: float) -> None:
+        if now >= self._next_errors_check:
+            self._next_errors_check = now + self.ERRORS_SAY_S
+            self._contain("link error summary", self._say_link_errors)
         if self.session is not None:
             self.session.tick(now)
             if self.session.unconfirmed is not None and now >= self._next_hello_request:
                 self._ask_hello(now)  # every 2 s, as before the first HELLO
         elif now >= self._next_hello_request and self.ring.pushed:
             self._ask_hello(now)
+
+    def _say_link_errors(self) -> None:
+        """One line per ERRORS_SAY_S [s] when the link dropped anything since the last: what it counted
+        (CRC failures, bad lengths, implausible samples...). Every rejection was counted and never
+        believed, but the log said nothing of 5000 garbage frames (an integrator's fault campaign)."""
+        if self.link is None:
+            return
+        errors = {k: int(v) for k, v in (self.link.stats().get("errors") or {}).items()
+                  if k in REJECTIONS and isinstance(v, int | float)}
+        grown = {k: v - self._errors_said.get(k, 0) for k, v in errors.items()
+                 if v > self._errors_said.get(k, 0)}
+        self._errors_said = errors
+        if grown:
+            log.warning("link %s: in the last %.0f s it dropped %s (counted in status link.errors, never "
+                        "believed)", self.link.target, self.ERRORS_SAY_S,
+                        ", ".join(f"{k} +{v}" for k, v in sorted(grown.items())))
 
     def _step(self, now: float) -> tuple[int, bool]:
         """Pop samples up to the next unit message's place in the stream, then handle the messages
