@@ -182,11 +182,15 @@ def test_an_ack_no_push_waits_for_makes_the_session_read_the_unit_s_set_again(tm
 
     s.on_message(CoeffAck(37, 0x12345678), h.now)  # bus garbage: an ack of no stored set is counted
     assert s.applied is not None and s.applied.version == 1 and s.stray_acks == 1
+    h.run(10)
+    before = len(s.monitor)
     (ack,) = h.unit.handle(CoeffWrite(2, terms_id(list(v1.terms)), coeffs))  # applied late, behind our back
     s.on_message(ack, h.now)
     h.run(2)
     assert s.applied is not None and s.applied.version == 2
     assert s.agreement.get("agree") and h.store.get(4242, 2).push["status"] == "applied_ack_lost"
+    # the set changed at a point the daemon did not see: the drift monitor starts again on it
+    assert before >= 6 and len(s.monitor) <= 2, (before, len(s.monitor))
 
 
 def test_an_unknown_terms_nak_for_the_term_set_the_unit_holds_is_tried_again(tmp_path: Path) -> None:

@@ -106,6 +106,12 @@ class AppliedSet:
     names: tuple[str, ...]
     coeffs_dps: np.ndarray  # (3, P) deg/s per term unit
 
+    def same_as(self, other: AppliedSet) -> bool:
+        """The same set: version, terms and coefficients."""
+        return (self.version == other.version and self.terms_id == other.terms_id
+                and np.shape(self.coeffs_dps) == np.shape(other.coeffs_dps)
+                and bool(np.array_equal(self.coeffs_dps, other.coeffs_dps)))
+
     def uses(self, atom: str) -> bool:
         """Whether a term with a non-zero coefficient needs ``atom`` (``dtemp``, ``temp``, ``t_on``)."""
         if not self.names:
@@ -252,6 +258,7 @@ class Session(RecoveryMixin):
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
         self._contradicted = 0  # UNKNOWN_TERMS NAKs for a term set the unit reports holding
+        self._set_before_read: AppliedSet | None = None  # the unit's set before it was read again
         self.stray_acks = 0  # acks no push waited for, of no stored set (bus garbage, another host)
         self._said_converged = False  # the "estimator converged" line of this stretch was logged
         self._held_has_north = False  # the held set was pushed before north was found (_north_found)
@@ -302,9 +309,15 @@ class Session(RecoveryMixin):
             # it answers. An ack of a set the store does not know (bus garbage) is only counted
             log.warning("unit %s: an ack of v%d arrived with no push waiting for it (the unit applied a "
                         "set late?): reading the unit's set again", self.hello.serial, msg.version)
-            self.applied, self._switch = None, None
+            self._forget_set()
             self._read_asks = 0
             self.request_read(now)
+
+    def _forget_set(self) -> None:
+        """The unit's set is unknown until it is read again (kept aside to see whether it changed)."""
+        if self.applied is not None:
+            self._set_before_read = self.applied
+        self.applied, self._switch = None, None
 
     def _stored_set_acked(self, ack: CoeffAck) -> bool:
         """Whether ``ack`` names a stored version of this unit by its CRC (else it is counted)."""
@@ -329,6 +342,15 @@ class Session(RecoveryMixin):
                 self.reason = f"the unit's set cannot be used ({why}); asking again, not learning meanwhile"
             return
         applied = AppliedSet.from_report(msg)
+        before, self._set_before_read = self._set_before_read, None
+        if self.applied is None and before is not None and not before.same_as(applied):
+            # the set changed at a point the daemon did not see (an ack lost, a late ack, an outage):
+            # the monitor's blocks around it were rebuilt with the wrong set, and a drift alarm at
+            # 52 / 45 / 26 deg/h followed while the unit was at 0.7 / 0.45 / 0.9 (an integrator's
+            # fault campaign). The monitor starts again on the set the unit reports
+            self.monitor.clear()
+            log.info("unit %s: it holds v%d where v%d was: the drift monitor starts again", self.hello.serial,
+                     applied.version, before.version)
         if self.applied is None:
             log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
                      applied.version, applied.terms_id)
@@ -1138,7 +1160,7 @@ class Session(RecoveryMixin):
                 self._retry = {"version": version, "names": names, "coeffs": coeffs, "round": rnd,
                                "at": now + delay}
                 self.reason += f"; the same v{version} is tried again in {delay:.0f} s"
-            self.applied, self._switch = None, None  # read back what the unit holds, don't assume it
+            self._forget_set()  # read back what the unit holds, don't assume it
             self._read_asks = 0
             self.request_read(now)
 

@@ -52,6 +52,8 @@ class RecoveryMixin:
     _retry: Any
     _disagreement_said: str | None = None
 
+    def _forget_set(self) -> None: ...  # Session's: the unit's set is unknown until read again
+
     def _send(self, msg: Any) -> bool:
         """Send to the unit; a link failure is counted and logged once per outage, never raised."""
         try:
@@ -82,7 +84,7 @@ class RecoveryMixin:
         """The link came back: the unit may have changed its set meanwhile; read it again."""
         self._read_asks = 0
         if self.push is None:
-            self.applied, self._switch = None, None
+            self._forget_set()
         self.request_read(now)
 
     def request_read(self, now: float) -> None:
