@@ -112,6 +112,11 @@ class AppliedSet:
                 and np.shape(self.coeffs_dps) == np.shape(other.coeffs_dps)
                 and bool(np.array_equal(self.coeffs_dps, other.coeffs_dps)))
 
+    def beyond_constant(self) -> bool:
+        """Whether a term other than the constant has a non-zero coefficient (a curve, not a bias)."""
+        other = [k for k, n in enumerate(self.names) if n != "1"]
+        return bool(np.any(self.coeffs_dps[:, other])) if other else False
+
     def uses(self, atom: str) -> bool:
         """Whether a term with a non-zero coefficient needs ``atom`` (``dtemp``, ``temp``, ``t_on``)."""
         if not self.names:
@@ -434,9 +439,10 @@ class Session(RecoveryMixin):
         self.still_samples += int(still.sum())
         if self._has_temp and still.any():
             t = samples["temp"][still]
-            t = t[np.isfinite(t)]
-            if t.size and self.learner.cold_bias and self._has_temp:
-                self._track_steady(samples["t"][still][np.isfinite(samples["temp"][still])], t)
+            ok = np.isfinite(t)
+            t = t[ok]
+            if t.size and self.learner.cold_bias:
+                self._track_steady(samples["t"][still][ok], t)
             if t.size:
                 lo, hi = float(t.min()), float(t.max())
                 self.temp_seen = (lo, hi) if self.temp_seen is None else \
@@ -464,9 +470,7 @@ class Session(RecoveryMixin):
         if not lr.cold_bias or lr.cold_ready or self._bias_pushed or self.validated_rms is not None \
                 or lr.samples == 0:
             return ""
-        a = self.applied
-        if a is None or (a.names and bool(np.any(np.delete(a.coeffs_dps, list(a.names).index("1"), axis=1)
-                                                 if "1" in a.names else a.coeffs_dps))):
+        if self.applied is None or self.applied.beyond_constant():
             # a curve the unit holds (a factory calibration, another tool's thermal one) is not replaced
             # by a constant; a constant it holds (PX4's CAL_GYRO offsets) is, when the new one removes
             # enough drift (the gate)
