@@ -547,3 +547,49 @@ def test_what_the_link_dropped_is_said_once_a_minute(tmp_path: Path,
     assert "seq_gaps" not in lines[0]
     eng._tick(120.0)  # nothing new: no line
     assert len([r for r in caplog.records if "it dropped" in r.getMessage()]) == 1
+
+
+def test_a_push_result_the_store_could_not_take_is_not_called_an_ack_lost(tmp_path: Path) -> None:
+    """An operator's soak with a full store: v44 was acked, its result could not be written (kept in
+    memory), and the read-back then logged "holds v44 although its push ended 'pending': recorded as
+    applied (ack lost)", which status kept saying after the store was freed."""
+    h = Harness.make(tmp_path)
+    real = h.store.update_push
+    full = {"on": True}
+
+    def update_push(serial, version, push):  # noqa: ANN001, ANN202
+        if full["on"]:
+            raise OSError(28, "No space left on device")
+        return real(serial, version, push)
+
+    h.store.update_push = update_push  # type: ignore[method-assign]
+    h.switch_on()
+    h.run(90, until=_pushed)
+    h.run(2)
+    s = h.session
+    assert s is not None and s.last_push.get("status") == "acked" and s.unrecorded
+    assert s.agreement.get("agree") and "ack lost" not in s.agreement["note"], s.agreement
+    assert s.agreement["store_status"] == "acked"
+    full["on"] = False
+    h.run(s.STORE_RETRY_S + 1)
+    v = s.last_push["version"]
+    assert not s.unrecorded and h.store.get(4242, v).push["status"] == "acked"
+    assert s.agreement["note"] == f"the unit holds v{v}, as the store says"
+
+
+def test_a_boot_counter_that_goes_back_is_said(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """An operator's soak opened a stale pty behind which another unit 4242 said boot 1 after this
+    unit's boot 5, and nothing was said."""
+    from gyrocal.daemon.store import CalibrationRecord
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng.store.add(CalibrationRecord(serial=4242, version=0, terms=["1"], coefficients_dps=[[0.01]] * 3,
+                                    uncertainty_dps=[[0.001]] * 3, identifiable={}, stats={},
+                                    session={"boot_count": 5},
+                                    push={"status": "acked", "unit": {"boot_count": 5, "time_s": 3.0}}))
+    eng._start_session(Hello(4242, "1.0.0", 6, 200), 0.0, from_hello=True)
+    assert not [r for r in caplog.records if "boot counter went back" in r.getMessage()]
+    eng._start_session(Hello(4242, "1.0.0", 1, 200), 1.0, from_hello=True)
+    said = [r.levelname for r in caplog.records if "boot counter went back from 5" in r.getMessage()]
+    assert said == ["WARNING"]

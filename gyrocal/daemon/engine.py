@@ -515,6 +515,15 @@ class Engine(CommandsMixin):
             self.session.unrecorded.extend(old.unrecorded)
         if prior is not None:
             log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
+            last_boot = ((prior.push.get("unit") or {}).get("boot_count")
+                         or (prior.session or {}).get("boot_count"))
+            if from_hello and isinstance(last_boot, int) and 0 < hello.boot_count < last_boot:
+                # protocol.md: +1 per switch-on, kept in flash. Going back, it is another unit with the
+                # same serial, or this one's flash was reset: said, as the learning cannot tell (an
+                # operator's soak opened a stale pty of another unit 4242 at boot 1 after boot 5, silently)
+                log.warning("unit %d: its boot counter went back from %d (v%d) to %d: its flash was reset, "
+                            "or this is another unit with the same serial", hello.serial, last_boot,
+                            prior.version, hello.boot_count)
 
     def _on_samples(self, block: np.ndarray, now: float) -> None:
         finite = np.isfinite(block["t"])

@@ -10,8 +10,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from gyrocal.daemon.reconcile import reconcile
-from gyrocal.daemon.store import utc_now
+from gyrocal.daemon.reconcile import Agreement, reconcile
+from gyrocal.daemon.store import APPLIED_STATUSES, utc_now
 from gyrocal.protocol.messages import CoeffRead, CoeffReport, coeff_set_crc
 
 log = logging.getLogger("gyrocal.session")
@@ -98,8 +98,9 @@ class RecoveryMixin:
     def _reconcile(self, msg: CoeffReport) -> None:
         try:
             crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps) if msg.version else None
-            self.agreement = reconcile(self.store, self.hello.serial, msg.version, crc, msg,
-                                       own_boot_bias=self.caps.own_boot_bias).as_dict()
+            held = self._held_in_memory(msg.version, crc)
+            self.agreement = (held or reconcile(self.store, self.hello.serial, msg.version, crc, msg,
+                                                own_boot_bias=self.caps.own_boot_bias)).as_dict()
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
         note = self.agreement.get("note")
@@ -116,6 +117,19 @@ class RecoveryMixin:
                 self._disagreement_said = note
             elif self.agreement.get("own_bias_dph") is None:
                 self._disagreement_said = None
+
+    def _held_in_memory(self, version: int, crc: int | None) -> Agreement | None:
+        """The read-back against this session's own push result for ``version`` when the store could not
+        take it yet (``unrecorded``): the store's 'pending' is not the truth then, and reconciling
+        against it logged "the unit holds v44 although its push ended 'pending': recorded as applied
+        (ack lost)" for a push whose ack had come, and status kept saying so after the store was freed
+        (an operator's soak). None when no such result is held."""
+        for v, push in reversed(self.unrecorded):
+            if v == version and push.get("status") in APPLIED_STATUSES and push.get("acked_crc") == crc:
+                return Agreement(version, crc, str(push["status"]), True,
+                                 f"the unit holds v{version}, as its push result says (kept in memory until "
+                                 "the store takes it)")
+        return None
 
     def _store_push(self, version: int, push: dict[str, Any], now: float) -> None:
         """Record a push result; a store that cannot take it keeps it in memory for later."""
@@ -138,3 +152,6 @@ class RecoveryMixin:
         if not self.unrecorded:
             self.store_error = None
             log.info("store available again: %d push result(s) recorded", len(pending))
+            if str(self.agreement.get("note", "")).endswith("until the store takes it)"):
+                held = self.agreement.get("unit_version")
+                self.agreement = {**self.agreement, "note": f"the unit holds v{held}, as the store says"}
