@@ -593,3 +593,16 @@ def test_a_boot_counter_that_goes_back_is_said(tmp_path: Path, caplog: pytest.Lo
     eng._start_session(Hello(4242, "1.0.0", 1, 200), 1.0, from_hello=True)
     said = [r.levelname for r in caplog.records if "boot counter went back from 5" in r.getMessage()]
     assert said == ["WARNING"]
+
+
+def test_a_new_session_keeps_saying_the_store_is_unavailable(tmp_path: Path) -> None:
+    """An operator's soak: with the disk still full, status said faults.store "ok" for 2 s at each new
+    session, while the push results it carried over still waited for the store."""
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng._start_session(Hello(4242, "1.0.0", 1, 200), 0.0, from_hello=True)
+    eng.session.unrecorded.append((3, {"status": "acked"}))
+    eng.session.store_error = "[Errno 28] No space left on device"
+    eng._start_session(Hello(4242, "1.0.0", 2, 200), 1.0, from_hello=True)
+    assert eng.session.unrecorded and eng.session.store_error == "[Errno 28] No space left on device"

@@ -513,6 +513,10 @@ class Engine(CommandsMixin):
         self.sessions_started += 1
         if old is not None:  # push results the store could not take yet: carried over, not lost
             self.session.unrecorded.extend(old.unrecorded)
+            if old.unrecorded and self.session.store_error is None:
+                # the store is as unavailable as it was: status said "ok" for 2 s at each new session
+                # while the disk was still full (an operator's soak)
+                self.session.store_error = old.store_error
         if prior is not None:
             log.info("unit %d: warm start from stored v%d", hello.serial, prior.version)
             last_boot = ((prior.push.get("unit") or {}).get("boot_count")
