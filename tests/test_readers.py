@@ -406,3 +406,21 @@ def test_a_session_that_is_not_a_whole_number_is_refused(tmp_path: Path) -> None
             read_log(f)
         with pytest.raises(LogFormatError, match="column 'session'"):
             read_any(str(f), None, ReadOptions())
+
+
+def test_a_gyro_in_rad_s_read_as_deg_s_is_warned_of_on_a_tumble(tmp_path: Path) -> None:
+    """rad/s read as deg/s made every figure 57x too small with no word when the accel was in g (an
+    outside check). Over the moves between rests the gyro integrates to the turn the accel shows."""
+    from gyrocal.sim.schedule import tumble
+    from gyrocal.sim.truth import SessionStream, TruthModel
+
+    c = SessionStream(TruthModel(), tumble(1.5, 0.6), 100.0, seed=4, boot=0).chunk(6000)
+    cols = {k: c[k] for k in ("t", "wx", "wy", "wz", "ax", "ay", "az")}
+    f = tmp_path / "tumble.csv"
+    write_log(f, cols)
+    assert not any("rad/s" in w for w in read_log(f).warnings)
+    for a in "xyz":
+        cols[f"w{a}"] = np.radians(cols[f"w{a}"])  # rad/s, in a file that says deg/s
+    write_log(f, cols)
+    said = [w for w in read_log(f).warnings if "looks like rad/s" in w]
+    assert len(said) == 1 and "--units gyro=rad/s" in said[0]

@@ -92,6 +92,58 @@ def looks_like_si(log: object) -> str | None:
     return None
 
 
+RAD_CHECK_ROWS = 200_000
+"""Rows of a log the gyro units check looks at (its first moves are enough)."""
+
+
+def gyro_units_warning(log: object) -> str | None:
+    """A warning when the gyro columns [deg/s] look like rad/s: across the moves between rests, the
+    gyro's integrated rate is under a tenth of the turn the accelerometer shows, else None.
+
+    Why: rad/s read as deg/s made every figure 57x too small with no word, on a tumble log whose accel
+    was in g (an outside check). The integral of |w| over a move is at least the angle between the
+    gravity directions of the rests either side, whatever the path; a ratio near 1/57 is the unit. A
+    move the log did not sample (a gap) says nothing and is skipped; so is a static log.
+    """
+    from gyrocal.model.still import detect_still, sample_rate_hz  # late: the reader needs it only here
+
+    cols = log.columns  # type: ignore[attr-defined]
+    if any(c not in cols for c in ("t", "wx", "wy", "wz", "ax", "ay", "az")) or cols["t"].size < 200:
+        return None
+    sub = {k: np.asarray(v[:RAD_CHECK_ROWS], dtype=np.float64) for k, v in cols.items()
+           if k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "session")}
+    sub.setdefault("session", np.zeros(sub["t"].size))
+    t, session = sub["t"], sub["session"]
+    if not np.all(np.isfinite(t)):
+        return None
+    rate = sample_rate_hz(t, session)
+    still = detect_still(sub, rate)
+    edges = np.flatnonzero(np.diff(still.astype(np.int8)))
+    acc = np.column_stack([sub["ax"], sub["ay"], sub["az"]])
+    w = np.sqrt(sub["wx"] ** 2 + sub["wy"] ** 2 + sub["wz"] ** 2)
+    ratios = []
+    # edges: k where still[k] != still[k + 1]; a move runs from a rest's last sample to the next's first
+    leave = edges[0::2] if still[0] else edges[1::2]
+    arrive = edges[1::2] if still[0] else edges[2::2]
+    for a, b in zip(leave, arrive, strict=False):
+        i, j = int(a), int(b) + 1  # last still sample before the move, first one after it
+        if j >= t.size or session[i] != session[j] or np.max(np.diff(t[i:j + 1])) > 5.0 / rate:
+            continue
+        g1 = acc[max(0, i - int(0.2 * rate)):i + 1].mean(axis=0)
+        g2 = acc[j:j + int(0.2 * rate) + 1].mean(axis=0)
+        cosang = float(np.dot(g1, g2) / max(np.linalg.norm(g1) * np.linalg.norm(g2), 1e-12))
+        turn = math.degrees(math.acos(min(1.0, max(-1.0, cosang))))
+        if turn < 20.0:
+            continue
+        ratios.append(float(np.sum(w[i:j] * np.diff(t[i:j + 1]))) / turn)
+    if len(ratios) >= 3 and float(np.median(ratios)) < 0.1:
+        return (f"{getattr(log, 'source', 'log')}: across {len(ratios)} moves the gyro integrates to "
+                f"{float(np.median(ratios)):.3f} of the turn the accelerometer shows (1 if deg/s; 0.017 if "
+                "rad/s): the gyro looks like rad/s where deg/s is expected; if so, pass --units gyro=rad/s "
+                "or write '# units: gyro=rad/s' in the header (docs/logformat.md)")
+    return None
+
+
 def temperature_units_warning(log: object) -> str | None:
     """A warning when the temp column [degC] looks like kelvin or Fahrenheit, else None.
 
@@ -141,6 +193,6 @@ def units_warnings(log: object, declared: Mapping[str, str] | None = None) -> li
     "looks like ms" (an outside check); a slow log in seconds and a fast one in ms overlap near 1 s."""
     time_said = bool(declared) and "time" in declared
     found = (looks_like_si(log), temperature_units_warning(log),
-             None if time_said else time_units_warning(log))
+             None if time_said else time_units_warning(log), gyro_units_warning(log))
     return [w for w in found if w]
 
