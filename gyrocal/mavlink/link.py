@@ -208,8 +208,7 @@ class MavlinkLink(UnitRequests, Link):
         of a fit or a store record): written as its TMIN..TMAX, never the range seen now, which may reach
         past it (the daemon calls this before it sends the write)."""
         if hasattr(self, "serial"):
-            ranges = self.state.unit(self.serial).setdefault("ranges", {})
-            ranges[str(version)] = [float(lo_c), float(hi_c)]
+            self.state.keep_range(self.serial, version, lo_c, hi_c, replace=True)
 
     # ---- Link hooks ------------------------------------------------------------------------------
     def _open(self) -> None:

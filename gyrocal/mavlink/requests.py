@@ -220,10 +220,7 @@ class UnitRequests:
             return
         u = self.state.unit(self.serial)
         if rng is not None:
-            ranges = u.setdefault("ranges", {})
-            ranges.setdefault(str(write.version), [float(rng[0]), float(rng[1])])
-            for old in sorted(ranges, key=int)[:-50]:  # bounded: the last 50 versions
-                del ranges[old]
+            self.state.keep_range(self.serial, write.version, *rng)
         rotation = self.profile.rotation_of(params)  # the frame the set was written in
         u.update(
             version=write.version,

@@ -24,6 +24,10 @@ from typing import Any
 log = logging.getLogger("gyrocal.mavlink.state")
 
 
+KEPT_RANGES = 50
+"""Versions whose temperature range [degC] the state file keeps (``keep_range``)."""
+
+
 class LinkState:
     """``path=None`` keeps the state in memory only (versions then read as 0 after a restart)."""
 
@@ -72,6 +76,15 @@ class LinkState:
         u["boot_params_boot"] = int(boot_count)
         self.save()
         return dict(read_now)
+
+    def keep_range(self, serial: int, version: int, lo: float, hi: float, replace: bool = False) -> None:
+        """The range [degC] ``version`` was (or is to be) written with, for a rollback or an operator's
+        file (``replace``: it overrides one kept); the last KEPT_RANGES versions are kept."""
+        ranges = self.unit(serial).setdefault("ranges", {})
+        if replace or str(version) not in ranges:
+            ranges[str(version)] = [float(lo), float(hi)]
+        for old in sorted(ranges, key=int)[:-KEPT_RANGES]:
+            del ranges[old]
 
     def widen(self, serial: int, lo: float, hi: float) -> tuple[float, float]:
         """Merge [lo, hi] degC into the unit's seen range and return the union."""

@@ -187,7 +187,7 @@ def time_units_warning(log: object) -> str | None:
 
 
 def units_warnings(log: object, declared: Mapping[str, str] | None = None) -> list[str]:
-    """Every units warning for a log's columns (accel, temperature, time): what the whole-file and
+    """Every units warning for a log's columns (accel, temperature, time, gyro): what the whole-file and
     the streaming CSV readers both add. A time unit the file or the user declared (``declared``) is
     taken as said: gyrocal convert's own 2 Hz ArduSub log, whose header says time=s, was warned of as
     "looks like ms" (an outside check); a slow log in seconds and a fast one in ms overlap near 1 s."""

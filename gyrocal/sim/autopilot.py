@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -177,9 +177,7 @@ class VirtualAutopilot:
     def power_on(self, wall_s: float = 0.0) -> None:
         """A new boot: fresh bias, time from 0, streams off, each autopilot's boot-time behaviour."""
         self.boot_count += 1
-        if self.ambients_c:
-            amb = self.ambients_c[min(self._boots_here, len(self.ambients_c) - 1)]
-            self.thermal = replace(self.thermal, ambient_c=amb)
+        self.thermal = self.thermal.at_boot(self.ambients_c, self._boots_here)
         self._boots_here += 1
         b = BootState(self.boot_count, t0_wall=wall_s)
         b.bias_dps = self.truth.switch_on_bias(self.seed, self.boot_count)

@@ -20,7 +20,7 @@ filter) from chunk to chunk so that a stream cut into chunks of any size is the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -160,6 +160,13 @@ class Thermal:
     tau_s: float = 120.0
     cycle_c: float = 0.0
     cycle_period_s: float = 600.0
+
+    def at_boot(self, ambients_c: tuple[float, ...], boot_index: int) -> Thermal:
+        """This thermal course for a run's switch-on ``boot_index`` (0 = the first): its ambient [degC]
+        from ``ambients_c`` in order, the last repeating (``--ambient``); itself when none are given."""
+        if not ambients_c:
+            return self
+        return replace(self, ambient_c=float(ambients_c[min(boot_index, len(ambients_c) - 1)]))
 
     def temp_c(self, t_on_s: np.ndarray) -> np.ndarray:
         t = np.asarray(t_on_s, dtype=np.float64)

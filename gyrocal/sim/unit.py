@@ -153,8 +153,8 @@ class VirtualUnit:
         """Switch on: count the boot, start a new session (new bias); return the HELLO to send."""
         self.boot_count += 1
         if self.ambients_c:  # this switch-on's ambient temperature (--ambient)
-            amb = self.ambients_c[min(self._boots_here, len(self.ambients_c) - 1)]
-            self.truth = replace(self.truth, thermal=replace(self.truth.thermal, ambient_c=amb))
+            thermal = self.truth.thermal.at_boot(self.ambients_c, self._boots_here)
+            self.truth = replace(self.truth, thermal=thermal)
         self._boots_here += 1
         self.stream = SessionStream(self.truth, self.schedule, self.rate_hz, self.seed, self.boot_count)
         self._trate = termsets.TempRate()  # dtemp as protocol.md defines it, from this switch-on
