@@ -136,3 +136,14 @@ def test_demo_mavlink_calibrates_a_virtual_px4_and_says_it_needs_a_reboot() -> N
     assert res["acked"] and res["reboot_needed"]["version"] == res["version"]
     assert res["tmax_c"] - res["tmin_c"] > 5.0
     assert min(res["improvement_x"]) > 5.0, res
+
+
+def test_an_autopilot_that_hangs_during_the_first_push_is_calibrated_when_it_answers(tmp_path: Path) -> None:
+    """The ArduPilot hangs for 12 s at the 5th PARAM_SET of the daemon's first push (the same boot goes
+    on). The session's read-back, cut by the hang, used to become a link fault: the retry of the same
+    version was NAKed UNKNOWN_TERMS (final) and the autopilot stayed uncalibrated, its compensation
+    off, for the switch-on. Now the read waits for the autopilot, and the retry is acked."""
+    params, st = run_daemon_until_acked(tmp_path, "--silence-after-sets", "5", "--silence-for", "12")
+    log = (tmp_path / "run.log").read_text()
+    assert "heartbeat lost" in log and "read again when it answers" in log
+    assert "UNKNOWN_TERMS" not in log and st["last_push"]["version"] == 1

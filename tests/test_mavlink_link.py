@@ -543,3 +543,35 @@ def test_a_constant_alone_is_written_about_a_steady_temperature_and_a_curve_is_n
             assert read_status(tmp_path / "ap.json")["params"]["TC_G0_TMIN"] == 22.0
         finally:
             link.stop()
+
+
+def test_a_push_cut_by_a_hang_puts_back_the_set_held_before_when_the_autopilot_answers(
+        tmp_path: Path) -> None:
+    """v4 is held and enabled; the push of v5 writes ENABLE = 0, then the ArduPilot hangs at its 23rd
+    PARAM_SET for 5 s (no reboot: the same boot goes on). The push is NAKed BUSY on the lost
+    heartbeat, and the daemon asks at once what the unit holds, as its session does. That read, cut
+    by the hang, used to become a link fault: every later write was NAKed UNKNOWN_TERMS (final), and
+    the autopilot flew on with its compensation off until the next switch-on. Now the read waits
+    for the autopilot to answer; the link writes v4 back, reports v4, enabled, and the same v5
+    pushed again is acked."""
+    with sim("ardupilot", tmp_path, "--silence-after-sets", "23", "--silence-for", "5") as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot", param_timeout_s=0.5)
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck), 15)
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
+            assert wait_for(lambda: col.of(CoeffNak), 20)
+            assert col.of(CoeffNak)[0].reason == NakReason.BUSY
+            link.send(CoeffRead())
+            assert wait_for(lambda: col.of(CoeffReport), 20)
+            rep = col.of(CoeffReport)[-1]  # its constant holds the ArduPilot's own gyro offsets
+            assert rep.version == 4 and np.allclose(np.asarray(rep.coeffs_dps)[:, 1:], Q[:, 1:], atol=1e-6)
+            assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 1.0)
+            assert link.fault is None and len(col.of(Hello)) == 1  # the same boot, no fault
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
+            assert wait_for(lambda: len(col.of(CoeffAck)) == 2, 20)
+            assert col.of(CoeffAck)[1].version == 5 and len(col.of(CoeffNak)) == 1
+        finally:
+            link.stop()

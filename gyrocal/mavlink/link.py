@@ -288,6 +288,7 @@ class MavlinkLink(UnitRequests, Link):
         self._push_write: CoeffWrite | None = None
         self._push_repeats = 0  # resends of the running push's write: each gets the push's answer
         self._restore: ParamRestore | None = None  # the set held before a push a reboot cut short
+        self._read_when_heard = False  # a read cut by the autopilot's silence: read again when it answers
         self._report_wanted = False
         self._source: str | None = None
         self._stream_asked_at: float | None = None
@@ -521,6 +522,11 @@ class MavlinkLink(UnitRequests, Link):
                     log.error("mavlink %s: the set held before the cut push could not be written back "
                               "(%s): compensation stays off until the next push", self.url, done.error)
                 self._reader = self._read_all(now)
+        if (self._read_when_heard and self._reader is None and self._push is None
+                and self._restore is None and not self._silent(now) and self._clock_seen(now)):
+            self._read_when_heard = False
+            log.info("mavlink %s: the autopilot answers again; reading its parameters", self.url)
+            self._reader = self._read_all(now)
         if self._reader is not None:
             self._reader.tick(now)
             if self._reader.finished:

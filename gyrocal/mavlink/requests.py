@@ -42,6 +42,12 @@ CMD_REBOOT = 246
 READ_RETRIES = 3
 """Whole parameter reads tried again at a boot's start before a failed read is a fault."""
 
+SILENT_S = 1.5
+"""No heartbeat or IMU message for this long [s]: the autopilot is silent (hung, rebooting, a cable
+out), so a parameter read that failed says nothing of its parameters and is tried again when it
+answers (at 1 Hz heartbeats and a stream of 50 Hz or more, an autopilot that answers is heard within
+1 s)."""
+
 MIN_RANGE_C = 1.0
 """The narrowest TMIN..TMAX [degC] a set with temperature terms is written with (never extrapolated)."""
 
@@ -60,7 +66,8 @@ class UnitRequests:
             if self.profile is None or self.fault:
                 return
             self._report_wanted = True
-            if self._reader is None and self._push is None:
+            if self._reader is None and self._push is None and self._restore is None \
+                    and not self._read_when_heard:
                 self._reader = self._read_all(now)
         elif isinstance(msg, CoeffWrite):
             self._start_push(msg, now, out)
@@ -119,6 +126,8 @@ class UnitRequests:
             ), NakReason.UNKNOWN_TERMS
         if self.profile is None or self._hello is None:
             return "the autopilot is not identified yet", NakReason.BUSY
+        if self._restore is not None:
+            return "the set held before a cut push is being written back", NakReason.BUSY
         if self.armed:
             return "the vehicle is armed; compensation is never changed in flight", NakReason.BUSY
         if self._push is not None:
@@ -259,6 +268,11 @@ class UnitRequests:
             raise LinkError("the vehicle is armed; gyrocal never reboots an armed autopilot")
         self._requests.append("reboot")
 
+    def _silent(self: MavlinkLink, now: float) -> bool:
+        """Nothing heard from the autopilot (heartbeat or IMU message) for ``SILENT_S``."""
+        heard = [t for t in (self._boot.last_hb, self._imu_rx) if t is not None]
+        return not heard or now - max(heard) > SILENT_S
+
     def _after_read(self: MavlinkLink, out: list[Any]) -> None:
         reader, self._reader = self._reader, None
         check, self._check_read = self._check_read, False
@@ -275,6 +289,14 @@ class UnitRequests:
             log.info("mavlink %s: parameter read failed (%s); reading again (%d of %d)", self.url,
                      reader.error, self._read_retries, READ_RETRIES)
             self._reader = self._read_all(time.monotonic())
+            return
+        if reader.error and self._silent(time.monotonic()):
+            # cut by the autopilot's silence (a hang after a push was cut, a cable out): it says nothing
+            # of the parameters. As a fault, it NAKed every later write UNKNOWN_TERMS (final) and left an
+            # ArduPilot with its compensation off for the switch-on (a hang at the 23rd PARAM_SET)
+            self._read_when_heard = True
+            log.warning("mavlink %s: parameter read cut short, the autopilot is silent (%s); read again "
+                        "when it answers", self.url, reader.error)
             return
         if reader.error:
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
@@ -297,17 +319,21 @@ class UnitRequests:
                 log.info("mavlink %s: the autopilot holds v%d whole although its push was cut short",
                          self.url, write.version)
                 self._remember(write, self._params, target, rng)
-            elif (self._hello is None and before and self.profile.is_enabled(before)
-                  and not self.profile.is_enabled(self._params)):
-                # cut before its ENABLE = 1: the autopilot booted with its compensation off and part of
-                # the new coefficients, worse than before the push; the set it held then goes back
-                # before this boot's HELLO (the daemon's new session reads the result)
-                log.warning("mavlink %s: the push of v%d was cut by a reboot before its ENABLE = 1; the "
-                            "autopilot booted with its compensation off: writing back the set it held "
-                            "before", self.url, write.version)
+            elif before and self.profile.is_enabled(before) and not self.profile.is_enabled(self._params):
+                # cut before its ENABLE = 1: the autopilot runs with its compensation off and part of
+                # the new coefficients, worse than before the push; the set it held then goes back,
+                # after a reboot before this boot's HELLO (the daemon's new session reads the result),
+                # after a hang at once (the daemon's retry of the same version waits for it)
+                log.warning("mavlink %s: the push of v%d was cut by %s before its ENABLE = 1; the "
+                            "autopilot %s with its compensation off: writing back the set it held "
+                            "before", self.url, write.version,
+                            "a reboot" if self._hello is None else "the autopilot's silence",
+                            "booted" if self._hello is None else "was left")
                 self._restore = ParamRestore(self.profile, before, self._send_param, time.monotonic(),
                                              timeout_s=self.param_timeout_s, retries=self.param_retries)
             self._cut_push = None
+            if self._restore is not None:
+                return  # what the unit holds is read, and reported, once the restore is done
         why = self.profile.problem(self._params)
         if why:
             self._set_fault(why)

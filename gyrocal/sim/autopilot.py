@@ -50,11 +50,14 @@ RAD = math.pi / 180.0
 @dataclass
 class AutopilotFaults:
     """Injected faults: drop the next N PARAM_VALUE answers to PARAM_SET; refuse writes of one parameter
-    (the echo carries the value kept); reboot after the N-th PARAM_SET (0 = never)."""
+    (the echo carries the value kept); reboot after the N-th PARAM_SET (0 = never); go silent after
+    the N-th PARAM_SET, unanswered, for ``silence_s`` [s], then go on in the same boot (0 = never)."""
 
     drop_param_values: int = 0
     reject_param: str = ""
     reboot_after_sets: int = 0
+    silence_after_sets: int = 0
+    silence_s: float = 5.0
 
 
 def default_thermal_dps(seed: int) -> np.ndarray:
@@ -131,6 +134,7 @@ class VirtualAutopilot:
         self.stream_next: dict[int, float] = {}
         self.sets_seen = 0
         self.reboot_pending = False
+        self.silence_pending = False  # AutopilotFaults.silence_after_sets: the runner stops sending
         self.uid = int(np.random.default_rng([seed, 0x51D]).integers(1, 2**63))
         self._rng = np.random.default_rng([seed, 0xA7])
 
@@ -323,6 +327,10 @@ class VirtualAutopilot:
         if self.faults.reboot_after_sets and self.sets_seen == self.faults.reboot_after_sets:
             self.faults.reboot_after_sets = 0
             self.reboot_pending = True
+            return []
+        if self.faults.silence_after_sets and self.sets_seen == self.faults.silence_after_sets:
+            self.faults.silence_after_sets = 0
+            self.silence_pending = True
             return []
         if self.faults.drop_param_values > 0:
             self.faults.drop_param_values -= 1

@@ -130,7 +130,8 @@ class AutopilotRunner:
         self._stop = False
         self._cycle = False
         self._t0 = 0.0
-        self._silent_until = 0.0
+        self._silent_until = 0.0  # a reboot's silence [monotonic s]: a new boot follows
+        self._mute_until = 0.0  # a hang's [monotonic s]: the same boot goes on
         self.bytes_sent = 0
 
     def request_stop(self) -> None:
@@ -157,12 +158,16 @@ class AutopilotRunner:
                 self.ap.reboot_pending = False
                 self._save_flash()
                 self._silent_until = now + REBOOT_S
-            if self._silent_until:
-                if now < self._silent_until:
-                    self.tr.read(0.01)  # a booting autopilot hears nothing
+            if self.ap.silence_pending:  # hung, not rebooting: the same boot goes on after it
+                self.ap.silence_pending = False
+                self._mute_until = now + self.ap.faults.silence_s
+            if self._silent_until or self._mute_until:
+                if now < max(self._silent_until, self._mute_until):
+                    self.tr.read(0.01)  # a booting or hung autopilot hears nothing
                     continue
-                self._silent_until = 0.0
-                self._boot(now)
+                if self._silent_until:
+                    self._boot(now)
+                self._silent_until = self._mute_until = 0.0
             self._send(self.ap.render(now - self._t0))
             data = self.tr.read(0.004)
             if data:
@@ -244,6 +249,14 @@ def configure(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="fault: reboot after the N-th PARAM_SET of a boot",
     )
+    g.add_argument(
+        "--silence-after-sets",
+        type=int,
+        default=0,
+        metavar="N",
+        help="fault: hang after the N-th PARAM_SET of a boot, unanswered, for --silence-for s (default 5), "
+        "then go on in the same boot",
+    )
 
 
 def thermal_args(args: argparse.Namespace) -> tuple[tuple[float, ...], float | None, float | None]:
@@ -265,7 +278,8 @@ def thermal_args(args: argparse.Namespace) -> tuple[tuple[float, ...], float | N
 
 
 def main(args: argparse.Namespace) -> int:
-    faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets)
+    faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets,
+                             args.silence_after_sets, args.silence_for or 5.0)
     ambients, rise, tau = thermal_args(args)
     ap = VirtualAutopilot(
         args.autopilot,
