@@ -144,6 +144,13 @@ def read_header(fh: Iterable[str], name: str, rename: Mapping[str, str] | None =
             continue
         if text.startswith("#"):
             body = text[1:].strip()
+            if body.count(",") >= 2 and ":" not in body:
+                # a header row behind a '#' (EuRoC, TUM-VI: "#timestamp [ns],w_RS_S_x [rad s^-1],..."):
+                # a metadata line always has its ':'. Taken as metadata, the first data row became the
+                # header (a foreign-log audit)
+                header = [h.strip() for h in next(csv.reader([body]))]
+                header_line = lineno
+                break
             if ":" in body:
                 key, value = body.split(":", 1)
                 metadata[key.strip()] = value.strip()
@@ -355,7 +362,16 @@ def write_log(
         for key, value in meta.items():
             fh.write(f"# {key}: {value}\n")
         fh.write(",".join(names) + "\n")
-        np.savetxt(fh, data, delimiter=",", fmt="%.10g")
+        np.savetxt(fh, data, delimiter=",", fmt=[_time_format(data[:, i]) if c == "t" else "%.10g"
+                                                  for i, c in enumerate(names)])
+
+
+def _time_format(t: np.ndarray) -> str:
+    """The format that keeps ``t`` [s] to the microsecond: 10 significant digits lost everything
+    below 1 s of a time counted from 1970 (a PX4 SITL .ulg, every ROS bag's header.stamp), so a
+    250 Hz log was written as runs of equal times (a foreign-log audit)."""
+    top = float(np.nanmax(np.abs(t))) if t.size and np.isfinite(t).any() else 0.0
+    return f"%.{min(17, max(10, int(np.ceil(np.log10(top + 1.0))) + 6))}g"
 
 
 def _default_order(columns: Mapping[str, np.ndarray]) -> list[str]:

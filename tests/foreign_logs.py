@@ -24,24 +24,42 @@ def _fmt_record(msg_type: int, name: str, fmt: str, cols: str) -> bytes:
     return HEAD + bytes([128]) + body
 
 
+OLD_IMU_FMT = "IffffffIIf"
+OLD_IMU_COLS = "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp"
+
+
 def write_dataflash(path: Path, t_s: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
-                    temp_c: np.ndarray, instances: int = 1) -> None:
-    """IMU records [rad/s, m/s^2, degC] for ``instances`` IMUs (instance k adds 0.01 k rad/s to x)."""
+                    temp_c: np.ndarray, instances: int = 1, old: bool = False) -> None:
+    """IMU records [rad/s, m/s^2, degC] for ``instances`` IMUs (instance k adds 0.01 k rad/s to x).
+
+    ``old``: the layout of Copter 3.2 and Solo logs, one message per IMU (IMU, IMU2, IMU3) with no
+    ``I`` field, ``TimeMS`` [ms] and ``Temp`` [degC] (ArduPilot's LogStructure.h of that time)."""
     out = bytearray(_fmt_record(128, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns"))
-    out += _fmt_record(200, "IMU", IMU_FMT, IMU_COLS)
+    if old:
+        for k in range(instances):
+            out += _fmt_record(200 + k, "IMU" if k == 0 else f"IMU{k + 1}", OLD_IMU_FMT, OLD_IMU_COLS)
+    else:
+        out += _fmt_record(200, "IMU", IMU_FMT, IMU_COLS)
     for i in range(len(t_s)):
         for k in range(instances):
             g = gyro_rad_s[i]
-            out += HEAD + bytes([200]) + struct.pack(
-                "<QBffffffIIf", int(round(t_s[i] * 1e6)), k, g[0] + 0.01 * k, g[1], g[2],
-                *accel_m_s2[i], 0, 0, temp_c[i])
+            if old:
+                out += HEAD + bytes([200 + k]) + struct.pack(
+                    "<IffffffIIf", int(round(t_s[i] * 1e3)), g[0] + 0.01 * k, g[1], g[2],
+                    *accel_m_s2[i], 0, 0, temp_c[i])
+            else:
+                out += HEAD + bytes([200]) + struct.pack(
+                    "<QBffffffIIf", int(round(t_s[i] * 1e6)), k, g[0] + 0.01 * k, g[1], g[2],
+                    *accel_m_s2[i], 0, 0, temp_c[i])
     Path(path).write_bytes(bytes(out))
 
 
 def write_rosbag(path: Path, t_s: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
-                 temp_c: np.ndarray | None = None, topic: str = "/imu", mcap: bool = False) -> None:
+                 temp_c: np.ndarray | None = None, topic: str = "/imu", mcap: bool = False,
+                 zero_stamps: bool = False) -> None:
     """A rosbag2 directory (sqlite3 or MCAP storage) with sensor_msgs/msg/Imu on ``topic``
-    (+ /imu_temp Temperature)."""
+    (+ /imu_temp Temperature); ``zero_stamps``: every header.stamp 0, as a driver that never sets
+    it writes, the record times still ``t_s``."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -56,7 +74,8 @@ def write_rosbag(path: Path, t_s: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s2
         tconn = w.add_connection("/imu_temp", Temp.__msgtype__, typestore=ts) if temp_c is not None else None
         for i, t in enumerate(t_s):
             ns = int(round(t * 1e9))
-            stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+            stamp = Time(sec=0, nanosec=0) if zero_stamps else Time(sec=ns // 1_000_000_000,
+                                                                     nanosec=ns % 1_000_000_000)
             g, a = gyro_rad_s[i], accel_m_s2[i]
             m = Imu(header=Header(stamp=stamp, frame_id="imu_link"),
                     orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),

@@ -239,6 +239,57 @@ def test_ardupilot_dataflash_imu_instances(sim_cols: dict[str, np.ndarray], tmp_
         read_any(path, options=ReadOptions(instance=2))
 
 
+def test_old_ardupilot_dataflash_layouts_read_their_time_and_temperature(sim_cols: dict[str, np.ndarray],
+                                                                           tmp_path: Path) -> None:
+    """Copter 3.2 / Solo logs: IMU and IMU2 messages, TimeMS [ms], Temp. The reader crashed with a
+    traceback (KeyError 'TimeUS'); a 3.3-3.6 log's Temp was dropped with no word; the other IMU's
+    records were not counted (a foreign-log audit)."""
+    pytest.importorskip("pymavlink")
+    n = 300
+    g = np.column_stack([sim_cols[f"w{a}"][:n] for a in "xyz"]) * D2R
+    acc = np.column_stack([sim_cols[f"a{a}"][:n] for a in "xyz"]) * G0
+    t = 12.0 + np.arange(n) * 0.02  # 50 Hz, whole ms
+    path = tmp_path / "old.bin"
+    write_dataflash(path, t, g, acc, sim_cols["temp"][:n], instances=2, old=True)
+    log = read_any(path)
+    np.testing.assert_allclose(log["t"], t, atol=1e-9)
+    np.testing.assert_allclose(log["temp"], sim_cols["temp"][:n], atol=1e-4)
+    np.testing.assert_allclose(log["wx"], sim_cols["wx"][:n], atol=1e-4)
+    assert log.metadata["other_instance_records"] == str(n) and not log.warnings
+    second = read_any(path, options=ReadOptions(instance=1))
+    np.testing.assert_allclose(second["wx"] - log["wx"], 0.01 / D2R, atol=1e-4)
+    # a board with no temperature sensor logs Temp = 0.0: no temp column, and a warning
+    write_dataflash(path, t, g, acc, np.zeros(n), old=True)
+    log = read_any(path)
+    assert "temp" not in log.columns and any("without a temperature" in w for w in log.warnings)
+
+
+def test_a_bag_whose_stamps_never_move_is_read_on_its_record_times(sim_cols: dict[str, np.ndarray],
+                                                                      tmp_path: Path) -> None:
+    """A driver that leaves header.stamp at 0: all 4000 samples were read at t = 0, with no word."""
+    pytest.importorskip("rosbags")
+    n = 200
+    g = np.column_stack([sim_cols[f"w{a}"][:n] for a in "xyz"]) * D2R
+    acc = np.column_stack([sim_cols[f"a{a}"][:n] for a in "xyz"]) * G0
+    bag = tmp_path / "bag"
+    write_rosbag(bag, 100.0 + sim_cols["t"][:n], g, acc, sim_cols["temp"][:n], zero_stamps=True)
+    log = read_any(bag)
+    np.testing.assert_allclose(log["t"], 100.0 + sim_cols["t"][:n], atol=1e-6)
+    assert log.metadata["time_from"] == "record time" and any("header.stamp" in w for w in log.warnings)
+    assert np.all(np.abs(log["temp"] - sim_cols["temp"][:n]) < 0.5)
+
+
+def test_times_counted_from_1970_keep_their_microseconds_when_written(tmp_path: Path) -> None:
+    """`convert` wrote t with 10 significant digits: a 250 Hz log stamped from 1970 (a PX4 SITL .ulg,
+    every ROS bag) came out as runs of equal whole seconds."""
+    t = 1710773350.354 + np.arange(500) * 0.004
+    cols = {"t": t, **{c: np.zeros(500) for c in ("wx", "wy", "wz", "ax", "ay")}, "az": np.ones(500)}
+    write_log(tmp_path / "epoch.csv", cols)
+    back = read_any(tmp_path / "epoch.csv")
+    np.testing.assert_allclose(np.diff(back["t"]), 0.004, atol=1e-6)
+    np.testing.assert_allclose(back["t"], t, rtol=0, atol=1e-6)
+
+
 def test_rosbag2_imu_with_temperature(sim_cols: dict[str, np.ndarray], tmp_path: Path) -> None:
     pytest.importorskip("rosbags")
     n = 300
@@ -357,8 +408,16 @@ def test_a_can_log_of_a_unit_on_another_node_reads_with_its_node_id(tmp_path: Pa
     node3 = read_any(str(moved), None, ReadOptions(instance=3))
     assert len(node3) == len(node0) and np.array_equal(node3["wx"], node0["wx"])
     assert node3.metadata.get("applied_version") == node0.metadata.get("applied_version")
-    with pytest.raises(LogFormatError, match=r"no sample of the unit on node 0, but \d+ frames of other"):
-        read_any(str(moved), None, ReadOptions())  # node 0 hears none of it, and says why
+    with pytest.raises(LogFormatError, match=r"no sample of the unit on node 0; .* node 3 \(\d+ frames\)"):
+        read_any(str(moved), None, ReadOptions())  # node 0 hears none of it, and says which node does
+    # a bus of another protocol: no node id would help, and the advice was "--instance N" all the same
+    other = tmp_path / "other.asc"
+    with can.ASCWriter(str(other)) as out:
+        for k in range(50):
+            out.on_message_received(can.Message(timestamp=k * 0.01, arbitration_id=0x3A0 + k % 4,
+                                                data=bytes(8), is_extended_id=False))
+    with pytest.raises(LogFormatError, match="none of its 50 frames carries an id of gyrocal's protocol"):
+        read_any(str(other), None, ReadOptions())
     with pytest.raises(ConfigError, match="node id, 0..15"):
         read_any(str(moved), None, ReadOptions(instance=16))
 
@@ -424,3 +483,20 @@ def test_a_gyro_in_rad_s_read_as_deg_s_is_warned_of_on_a_tumble(tmp_path: Path) 
     write_log(f, cols)
     said = [w for w in read_log(f).warnings if "looks like rad/s" in w]
     assert len(said) == 1 and "--units gyro=rad/s" in said[0]
+
+
+def test_a_header_row_behind_a_hash_is_the_header(tmp_path: Path) -> None:
+    """EuRoC and TUM-VI write "#timestamp [ns],w_RS_S_x [rad s^-1],...": it was taken for metadata
+    and the first data row for the header (a foreign-log audit)."""
+    path = tmp_path / "imu0.csv"
+    rows = [f"{1403636579758555392 + k * 5_000_000},0.01,-0.02,0.005,9.81,0.02,0.002" for k in range(200)]
+    path.write_text("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+                    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n" + "\n".join(rows) + "\n")
+    cols = ("t=timestamp [ns],wx=w_RS_S_x [rad s^-1],wy=w_RS_S_y [rad s^-1],wz=w_RS_S_z [rad s^-1],"
+            "ax=a_RS_S_x [m s^-2],ay=a_RS_S_y [m s^-2],az=a_RS_S_z [m s^-2]")
+    opts = options_from_args(Namespace(columns=cols, units="gyro=rad/s,accel=m/s^2,time=ns"))
+    log = read_any(path, None, opts)
+    assert len(log) == 200
+    np.testing.assert_allclose(np.diff(log["t"]), 0.005, atol=1e-6)
+    np.testing.assert_allclose(log["wx"], 0.01 * 180 / math.pi)
+    np.testing.assert_allclose(log["ax"], 9.81 / G0)

@@ -133,6 +133,36 @@ def test_scaled_imu_of_another_instance_with_its_own_temperature(tmp_path: Path)
         read_any(path, options=ReadOptions(instance=2))
 
 
+def test_a_px4_highres_imu_is_not_taken_for_imu_0(tmp_path: Path) -> None:
+    """PX4 sends in HIGHRES_IMU the IMU it selected, with id never set (0), minus EKF2's gyro bias.
+    After a failover to IMU 1, the reader took it for IMU 0 and gave it IMU 0's temperature from
+    SCALED_IMU, another chip's (a foreign-log audit). IMU 0's own SCALED_IMU is read instead, and a
+    HIGHRES_IMU asked for by --topic gets no temperature; both say why."""
+    log = _Tlog()
+    for i in range(1000):
+        t = 5.0 + i * 0.01
+        if i % 100 == 0:
+            log.add(t, 1, "HEARTBEAT", 2, 12, 0, 0, 4, 3)  # MAV_AUTOPILOT_PX4
+        # HIGHRES_IMU: IMU 1's 20 mrad/s on y, id 0
+        log.add(t, 1, "HIGHRES_IMU", int(t * 1e6), 0, 0, -G0, 0, 0.02, 0, 0, 0, 0, 1000, 0, 0, 21.5,
+                0x1FFF, 0)
+        if i % 10 == 0:  # IMU 0: 10 mrad/s on x, 40 degC; IMU 1 at 60 degC
+            log.add(t + 1e-4, 1, "SCALED_IMU", int(t * 1e3), 0, 0, -1000, 10, 0, 0, 0, 0, 0, 4000)
+            log.add(t + 2e-4, 1, "SCALED_IMU2", int(t * 1e3), 0, 0, -1000, 0, 20, 0, 0, 0, 0, 6000)
+    path = tmp_path / "px4.tlog"
+    log.write(path)
+    imu0 = read_any(path)
+    assert imu0.metadata["sensor"] == "MAVLink SCALED_IMU[0]" and len(imu0) == 100
+    np.testing.assert_allclose(imu0["wx"], 10.5e-3 * R2D)  # the step's centre
+    np.testing.assert_allclose(imu0["temp"], 40.0)
+    assert any("EKF2" in w and "SCALED_IMU[0]" in w for w in imu0.warnings)
+    forced = read_any(path, options=ReadOptions(topic="HIGHRES_IMU"))
+    assert forced.metadata["sensor"].startswith("MAVLink HIGHRES_IMU[0] (the IMU PX4 selected)")
+    assert "EKF2" in forced.metadata["correction"] and "temp" not in forced.columns
+    assert [w for w in forced.warnings if "EKF2" in w] and len(forced.warnings) == 1
+    np.testing.assert_allclose(forced["wy"], 0.02 * R2D, rtol=1e-6)
+
+
 def test_real_ardusub_tlog(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
     """ArduSub 4.1.1 via QGroundControl (data/PROVENANCE.md): RAW_IMU of IMU 0 at 2 Hz with its
     temperature; SCALED_IMU2 is all zeros (the vehicle has no second IMU)."""

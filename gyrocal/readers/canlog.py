@@ -15,6 +15,7 @@ names what is wrong.
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -153,6 +154,34 @@ def read_canlog(path: str, options: ReadOptions, fast: bool = True) -> LogData:
     if foreign:
         log.metadata["foreign_frames"] = str(foreign)
     if len(log) == 0 and foreign:
-        raise LogFormatError(f"{path}: no sample of the unit on node {options.instance}, but {foreign} "
-                             "frames of other CAN nodes: give the unit's node id with --instance N (0..15)")
+        nodes = _protocol_nodes(path, options.instance, options.dbc)
+        if nodes:
+            seen = ", ".join(f"node {n} ({c} frames)" for n, c in sorted(nodes.items()))
+            raise LogFormatError(f"{path}: no sample of the unit on node {options.instance}; frames of "
+                                 f"gyrocal's protocol come from {seen}: give that node id with --instance N")
+        raise LogFormatError(f"{path}: none of its {foreign} frames carries an id of gyrocal's protocol "
+                             "(0x100-0x1FF, docs/protocol.md section 3): not a recording of a gyrocal unit's "
+                             "bus")
     return log
+
+
+def _protocol_nodes(path: str, skip: int, dbc: str | None) -> collections.Counter[int]:
+    """Frames per node id whose standard id is one of gyrocal's (0x100 + function << 4 + node), other
+    than ``skip``: the advice of a log with no sample of the node asked for. Every node id was given
+    the same "--instance N" advice, also for a log of another protocol, where no N could help (a
+    foreign-log audit). Read again frame by frame: only on that error."""
+    import can
+
+    from gyrocal.protocol.can_codec import ID_BASE, load_dbc
+
+    functions = {(m.frame_id - ID_BASE) >> 4 for m in load_dbc(dbc).messages}
+    nodes: collections.Counter[int] = collections.Counter()
+    try:
+        for frame in can.LogReader(path):
+            fid = frame.arbitration_id
+            if (not frame.is_extended_id and not frame.is_error_frame and ID_BASE <= fid < ID_BASE + 0x100
+                    and (fid - ID_BASE) >> 4 in functions and fid & 0xF != skip):
+                nodes[fid & 0xF] += 1
+    except Exception:  # noqa: BLE001 - the first pass read it; a cut tail here only shortens the advice
+        pass
+    return nodes

@@ -6,7 +6,10 @@ What the IMU message holds (ArduPilot AP_InertialSensor::Write_IMU, units from i
 calibrated offsets, scale factors and board orientation (and, on boards with it, the temperature
 calibration) and after the INS low-pass filters (INS_GYRO_FILTER, INS_ACCEL_FILTER), and ``T``
 the sensor temperature [degC]. It is logged at the main loop rate at most. Old logs name the
-instances IMU, IMU2, IMU3 instead of the ``I`` field; both are read.
+instances IMU, IMU2, IMU3 instead of the ``I`` field; both are read. Older firmware labels its
+fields otherwise: ``TimeMS`` [ms since boot] before ``TimeUS`` (Copter 3.2, Solo), and ``Temp``
+before ``T`` (Copter 3.3-3.6); a board with no temperature sensor logs ``Temp`` as 0.0. Those logs
+crashed the reader, or lost their temperature with no word (a foreign-log audit).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ def read_dataflash(path: str, options: ReadOptions) -> LogData:
 
     inst = options.instance
     old_name = "IMU" if inst == 0 else f"IMU{inst + 1}"
+    old_names = ["IMU", "IMU2", "IMU3"]
     try:
         df = DFReader.DFReader_binary(path, zero_time_base=True)
     except OSError as err:
@@ -37,19 +41,28 @@ def read_dataflash(path: str, options: ReadOptions) -> LogData:
     other = 0
     while True:
         try:
-            m = df.recv_match(type=["IMU", old_name])
+            m = df.recv_match(type=old_names)
         except Exception as err:  # as above
             raise LogFormatError(f"{path}: DataFlash record unreadable ({err})") from err
         if m is None:
             break
         d = m.to_dict()
-        i = int(d.get("I", 0 if m.get_type() == "IMU" else inst))
+        kind = m.get_type()
+        i = int(d["I"]) if "I" in d else old_names.index(kind)
         seen.add(i)
-        if i != inst or (m.get_type() != "IMU" and "I" in d):
+        if i != inst or (kind != "IMU" and "I" in d) or (kind != old_name and "I" not in d):
             other += 1
             continue
-        rows.append((d["TimeUS"] * 1e-6, d["GyrX"], d["GyrY"], d["GyrZ"], d["AccX"], d["AccY"], d["AccZ"],
-                     d.get("T", np.nan)))
+        if "TimeUS" in d:
+            t_s = d["TimeUS"] * 1e-6
+        elif "TimeMS" in d:
+            t_s = d["TimeMS"] * 1e-3
+        else:
+            raise LogFormatError(f"{path}: {kind} record without TimeUS or TimeMS (its fields: "
+                                 f"{', '.join(k for k in d if k != 'mavpackettype')}); not a layout this "
+                                 "reader knows")
+        rows.append((t_s, d["GyrX"], d["GyrY"], d["GyrZ"], d["AccX"], d["AccY"], d["AccZ"],
+                     d.get("T", d.get("Temp", np.nan))))
     if not rows:
         raise LogFormatError(f"{path}: no IMU messages of instance {inst}; instances seen: "
                              f"{sorted(seen) or 'none'} (--instance N)")
@@ -57,4 +70,13 @@ def read_dataflash(path: str, options: ReadOptions) -> LogData:
     meta = {"sensor": f"ArduPilot IMU[{inst}]", "frame": "body",
             "correction": "after ArduPilot's offsets, scale and orientation"}
     meta["other_instance_records"] = str(other)
-    return si_imu_log(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], meta, path)
+    temp = a[:, 7]
+    warnings: list[str] = []
+    if not np.isfinite(temp).any() or not np.any(temp[np.isfinite(temp)] != 0.0):
+        why = "all 0.0: a board with no IMU temperature sensor" if np.isfinite(temp).any() else "none logged"
+        warnings.append(f"{path}: IMU[{inst}] comes without a temperature ({why}); the log has no temp "
+                        "column (a fit of temperature terms needs one)")
+        temp = np.full(temp.shape, np.nan)
+    log = si_imu_log(a[:, 0], a[:, 1:4], a[:, 4:7], temp, meta, path)
+    log.warnings.extend(warnings)
+    return log

@@ -12,7 +12,13 @@ temperature (docs/mavlink.md says what each autopilot puts in them). Per IMU ins
 
 - the stream: HIGHRES_IMU (instance = its ``id`` field) if the log holds it, else SCALED_IMU(n)
   (SCALED_IMU = 0, SCALED_IMU2 = 1, SCALED_IMU3 = 2), else RAW_IMU (its ``id``); the same
-  instance's other streams are counted in ``dropped`` as ``lower_priority_<type>``;
+  instance's other streams are counted in ``dropped`` as ``lower_priority_<type>``. ``--topic``
+  names the message to read instead. A PX4 (its HEARTBEAT) sends in HIGHRES_IMU the IMU it
+  selected, whichever it is, with ``id`` never set (0), minus EKF2's gyro bias estimate
+  (MavlinkStreamHighresIMU): its SCALED_IMU(n), IMU n itself, is read instead when the log has it,
+  and a HIGHRES_IMU read all the same gets no temperature (its chip is not known), with a warning.
+  Before, HIGHRES_IMU was taken for IMU 0 with SCALED_IMU's temperature, another chip's after a
+  failover (a foreign-log audit);
 - the temperature: the stream's own (SCALED/RAW_IMU; 0 means not given), or for HIGHRES_IMU (whose
   ``temperature`` is the barometer's) the SCALED_IMU(n), else RAW_IMU, of that instance; the last
   value received is held, as the live link does, and samples before the first one are dropped
@@ -33,11 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from gyrocal.errors import LogFormatError
+from gyrocal.errors import ConfigError, LogFormatError
 from gyrocal.logformat import CANONICAL_UNITS, LogData
 from gyrocal.readers import ReadOptions, require
 
 HIGHRES, RAW = "HIGHRES_IMU", "RAW_IMU"
+MAV_AUTOPILOT_PX4 = 12
 BOOT_BACK_S = 0.5
 """Boot time going back by more than this [s] is a new boot (``BootDetector``'s margin)."""
 
@@ -88,13 +95,17 @@ def read_tlog(path: str, options: ReadOptions) -> LogData:
     seen = dict.fromkeys(types, 0)  # messages pymavlink decoded, by type
     meta: dict[str, str] = {}
     first = getattr(conn, "messages", {})
+    autopilot: dict[tuple[int, int], int] = {}  # MAV_AUTOPILOT of each HEARTBEAT's sender
     try:
         version = first.get("AUTOPILOT_VERSION")
         while True:
-            m = conn.recv_match(type=list(types))
+            m = conn.recv_match(type=[*types, "HEARTBEAT"])
             if m is None:
                 break
             kind = m.get_type()
+            if kind == "HEARTBEAT":
+                autopilot.setdefault((m.get_srcSystem(), m.get_srcComponent()), int(m.autopilot))
+                continue
             seen[kind] = seen.get(kind, 0) + 1
             src = (m.get_srcSystem(), m.get_srcComponent())
             if source is None:
@@ -134,7 +145,26 @@ def read_tlog(path: str, options: ReadOptions) -> LogData:
         why = f" ({', '.join(zero)} all zero: the autopilot has no such IMU)" if zero else ""
         raise LogFormatError(f"{path}: no IMU messages of instance {inst}{why}; streams with data: "
                              f"{', '.join(have) or 'none'} (--instance N)")
+    warnings: list[str] = []
+    px4 = source is not None and autopilot.get(source) == MAV_AUTOPILOT_PX4
+    if options.topic is not None:
+        if options.topic not in types:
+            raise ConfigError(f"--topic {options.topic}: a .tlog's IMU messages are {', '.join(types)}")
+        real = [key for key in real if key[0] == options.topic]
+        if not real:
+            raise LogFormatError(f"{path}: no {options.topic} messages of instance {inst}; streams with "
+                                 f"data: {', '.join(have) or 'none'} (--instance N, --topic NAME)")
+    elif px4 and real[0][0] == HIGHRES and len(real) > 1:
+        real = real[1:]
+        warnings.append(f"{path}: a PX4's HIGHRES_IMU is the IMU it selected (its id is never set) minus "
+                        f"EKF2's gyro bias estimate; {real[0][0]}[{inst}], IMU {inst} itself, is read "
+                        "instead (1 mrad/s steps; --topic HIGHRES_IMU reads HIGHRES_IMU)")
     chosen = real[0]
+    px4_highres = px4 and chosen[0] == HIGHRES
+    if px4_highres:
+        warnings.append(f"{path}: a PX4's HIGHRES_IMU is the IMU it selected, not always IMU {inst} (its "
+                        "id is never set), minus EKF2's gyro bias estimate: an offset fitted to it is what "
+                        "EKF2 had not removed, and it gets no temperature (which chip's is not known)")
     dropped: dict[str, int] = {}
     for key in present:
         if key != chosen:
@@ -150,8 +180,7 @@ def read_tlog(path: str, options: ReadOptions) -> LogData:
     a = np.asarray(s.accel, dtype=np.float64).reshape(-1, 3)
     keep = ~np.asarray(s.all_zero, dtype=bool)
     # the temperature: held from the last message of the temperature stream (file order)
-    warnings: list[str] = []
-    temp_src = chosen if chosen[0] != HIGHRES else next(
+    temp_src = chosen if chosen[0] != HIGHRES else None if px4_highres else next(
         (k for k in mine[1:] if k is not None and k in streams and np.isfinite(streams[k].temp).any()), None)
     temp: np.ndarray | None = None
     if temp_src is not None:
@@ -167,7 +196,7 @@ def read_tlog(path: str, options: ReadOptions) -> LogData:
                 dropped["no_temperature"] = int(no_temp.sum())
             keep &= np.isfinite(temp)
             meta["temperature_from"] = f"{temp_src[0]}[{temp_src[1]}]"
-    if temp is None:
+    if temp is None and not px4_highres:  # that one's warning says so
         warnings.append(f"{path}: {chosen[0]}[{inst}] comes without an IMU temperature; the log has no "
                         "temp column (a fit of temperature terms needs one)")
     if (~np.asarray(s.all_zero, dtype=bool)).sum() < len(s.t):
@@ -198,8 +227,11 @@ def read_tlog(path: str, options: ReadOptions) -> LogData:
     if temp is not None:
         cols["temp"] = temp[keep]
     cols["session"] = session[keep]
-    meta.update({"sensor": f"MAVLink {chosen[0]}[{inst}]", "frame": "FRD body",
-                 "correction": "after the autopilot's offsets and board rotation (docs/mavlink.md)",
+    selected = " (the IMU PX4 selected)" if px4_highres else ""
+    meta.update({"sensor": f"MAVLink {chosen[0]}[{inst}]{selected}",
+                 "frame": "FRD body",
+                 "correction": "after the autopilot's offsets and board rotation"
+                 + (", minus EKF2's gyro bias estimate" if px4_highres else "") + " (docs/mavlink.md)",
                  "source_system": f"{source[0]}/{source[1]}" if source else "",
                  "imu_streams": ", ".join(have), "units": CANONICAL_UNITS})
     others = sum(len(st.t) for key, st in streams.items() if key[1] != inst)
