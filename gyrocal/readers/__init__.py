@@ -59,7 +59,8 @@ class ReadOptions:
 
     columns: our column name -> the file's (CSV); units: quantity -> unit (CSV);
     instance: which IMU of several (ULog, DataFlash, .tlog; default 0); topic: which topic or message
-    (ULog: sensor_gyro_fifo, sensor_gyro or sensor_combined; ROS: the Imu topic); dbc: the CAN database.
+    (ULog: sensor_gyro_fifo, sensor_gyro or sensor_combined; .tlog: the IMU message; ROS: the Imu
+    topic); dbc: the CAN database.
     """
 
     columns: dict[str, str] = field(default_factory=dict)
@@ -129,8 +130,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="which IMU of several in a .ulg, .bin or .tlog; a CAN log: the unit's node id "
                         "(default 0)")
     g.add_argument("--topic", metavar="NAME",
-                   help="ULog topic (sensor_gyro_fifo, sensor_gyro or sensor_combined) or ROS Imu topic "
-                        "(default: found)")
+                   help="ULog topic (sensor_gyro_fifo, sensor_gyro or sensor_combined), .tlog message "
+                        "(HIGHRES_IMU, SCALED_IMU, SCALED_IMU2/3, RAW_IMU) or ROS Imu topic (default: found)")
     g.add_argument("--dbc", metavar="FILE.dbc", help="CAN database for python-can logs (default: shipped)")
 
 
