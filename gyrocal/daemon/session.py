@@ -192,6 +192,11 @@ class Session(RecoveryMixin):
     [s] of unit time (the rank unchanged; with temperature terms, the still samples' temperature also
     within +-STEADY_BAND_C [degC]) and the unit holds no set beyond a constant (learner.py, "A cold
     start that stops learning"): a heated IMU, and a unit mounted at one pose, were never calibrated."""
+    BIAS_KEEP_RATIO = 2.0
+    """In the bias stage, an axis whose bias has moved by no more than this many times the new bias's
+    own predicted error keeps the held bias, and the axes that gain are pushed: an axis whose bias
+    repeats from one switch-on to the next held back the other two, 1130 and 2874 deg/h off, for good
+    (a serial integrator's unit whose y bias repeats)."""
     BIAS_MIN_CUT = 3.0
     """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
     times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
@@ -242,6 +247,7 @@ class Session(RecoveryMixin):
         self.temp_seen: tuple[float, float] | None = None
         self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
         self._gate_result: refine.GateResult | None = None
+        self._keep_held: np.ndarray | None = None  # (3,) bool: bias-stage axes that keep the held bias
         self._refusal_logged: set[int] = set()
         self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
         self.prediction: dict[str, Any] = {}
@@ -606,6 +612,15 @@ class Session(RecoveryMixin):
         floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
                                             self.cfg.validation["min_improvement"])
+        self._keep_held = None
+        if bias and not g.ok and self._applied_coeffs() is not None and np.all(np.isfinite(left)):
+            with np.errstate(invalid="ignore"):
+                same = ~g.gains & (np.nan_to_num(removes, nan=np.inf) <= self.BIAS_KEEP_RATIO * left)
+            if np.any(g.gains) and np.all(g.gains | same):
+                self._keep_held = same
+                return True, (f"bias stage on axis {_axes(g.gains)}; axis {_axes(same)} keeps the held bias "
+                              f"(moved {_dph(removes)} deg/h, within {self.BIAS_KEEP_RATIO:g}x the new "
+                              f"bias's error {_dph(left)} deg/h)")
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
                f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
@@ -860,6 +875,8 @@ class Session(RecoveryMixin):
             self.reason = "bias stage: " + why
             return
         self._bias_pushed = True
+        if self._keep_held is not None:
+            log.info("unit %s: %s", self.hello.serial, why)
         self._validate(now, self.monitor, stage="bias")
 
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
@@ -875,12 +892,29 @@ class Session(RecoveryMixin):
             log.warning("unit %s: %s", self.hello.serial, self.reason)
             return
         poses = self.pose_log.array(len(self.names))
-        self._projection = proj = project(self.names, self.learner.coefficients, held, poses)
-        coeffs = proj.embedded_dps
+        learnt = self.learner.coefficients
         blocks = self.holdout if blocks is None else blocks
         applied = self._applied_coeffs()
+        keep = self._keep_held if stage == "bias" else None
+        if keep is not None and applied is not None:
+            learnt = np.where(keep[:, None], applied, learnt)  # the axes whose bias has not moved
+        self._projection = proj = project(self.names, learnt, held, poses)
+        coeffs = proj.embedded_dps
         rms_old = blocks.rms_with(applied)  # None: the unit's output as sent
         rms_new = blocks.rms_with(coeffs)
+        g = self._gate_result
+        refining = stage == "full" and g is not None and self._held_info()[0] is not None
+        worse = ~refine.axes_not_worse(rms_old, rms_new) if refining else np.zeros(3, dtype=bool)
+        if refining and applied is not None and np.any(worse) and not np.all(worse):
+            # the held set's rows on the axes where the new set is worse, the new rows elsewhere (each
+            # axis's drift has its own coefficients): one worse axis refused gains of 50-250x on the
+            # other two, for good (a serial integrator's unit whose y bias repeats)
+            keep = worse
+            learnt = np.where(keep[:, None], applied, learnt)
+            self._projection = proj = project(self.names, learnt, held, poses)
+            coeffs = proj.embedded_dps
+            rms_new = blocks.rms_with(coeffs)
+            worse = ~refine.axes_not_worse(rms_old, rms_new)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
         self.last_validation = {
@@ -888,9 +922,9 @@ class Session(RecoveryMixin):
             "rms_current_dps": dict(zip("xyz", rms_old.tolist(), strict=True)),
             "rms_new_dps": dict(zip("xyz", rms_new.tolist(), strict=True)),
         }
-        g = self._gate_result
-        refining = stage == "full" and g is not None and self._held_info()[0] is not None
-        worse = ~refine.axes_not_worse(rms_old, rms_new) if refining else np.zeros(3, dtype=bool)
+        kept = [] if keep is None else [a for a, k in zip("xyz", keep, strict=True) if k]
+        if kept:
+            self.last_validation["kept_axes"] = kept
         # a refinement is not worse on any axis, and improves by min_improvement on the three axes
         # together or on one, or widens the range: a gain in TMIN..TMAX the held-out residual cannot
         # show (the link reconstructs the unit's output with the held set unclamped)
@@ -976,6 +1010,16 @@ class Session(RecoveryMixin):
         if "unseen_share" in self.prediction:
             self._push_prediction["unseen_share"] = round(float(self.prediction["unseen_share"]), 4)
         self._push_prediction["stage"] = stage
+        if kept:  # those axes hold the held set's rows: its own prediction, where its record has one
+            held_left = self._held_info()[0]
+            mask = np.array([a in kept for a in "xyz"])
+            for k in PREDICTED_KEYS:
+                if k in self._push_prediction:
+                    v = np.array([np.nan if x is None else x / DPH
+                                  for x in self._push_prediction[k].values()], dtype=float)
+                    v[mask] = 0.0 if k == "removes" else np.nan if held_left is None else held_left[mask]
+                    self._push_prediction[k] = _xyz_dph(v)
+            self._push_prediction["kept_axes"] = kept
         try:
             record = self._record(proj)
         except Exception as err:  # never push a set the store does not know
@@ -1240,6 +1284,11 @@ class Session(RecoveryMixin):
 
 def _range(r: tuple[float, float] | None) -> str:
     return "?" if r is None else f"{r[0]:.1f}..{r[1]:.1f}"
+
+
+def _axes(mask: np.ndarray) -> str:
+    """The axes a (3,) bool mask selects, as "x/z"."""
+    return "/".join(a for a, m in zip("xyz", mask, strict=True) if m)
 
 
 def _dph(v: np.ndarray) -> str:
