@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -606,3 +607,39 @@ def test_a_new_session_keeps_saying_the_store_is_unavailable(tmp_path: Path) -> 
     eng.session.store_error = "[Errno 28] No space left on device"
     eng._start_session(Hello(4242, "1.0.0", 2, 200), 1.0, from_hello=True)
     assert eng.session.unrecorded and eng.session.store_error == "[Errno 28] No space left on device"
+
+
+def test_a_temperature_no_sensor_reads_never_reaches_the_estimator(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """One sample in 997 at 327.67 degC (the i16 field's ceiling) under a valid CRC: it raised a
+    14-term set's rank, was pushed with temp_range_c [20.28, 327.67] and left 10x the drift expected
+    (a serial integrator's unit). Such samples are dropped, counted and said once a minute; a slow
+    warm-up, and a real jump that persists, pass."""
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng._on_message(Hello(77, "1.0", 1, 200), 0.0)
+    fed: list[np.ndarray] = []  # the temperatures the estimator's side sees
+    real_feed = eng.detector.feed
+    eng.detector.feed = lambda block: (fed.append(block["temp"].copy()), real_feed(block))[1]
+    n = 4000
+    b = _samples(0, n, 200.0)
+    b["temp"] = 20.0 + 0.05 * b["t"]  # a warm-up of 0.05 degC/s
+    b["temp"][::997] = 327.67
+    b["temp"][1500] = -40.0  # in range, but a 41 degC spike
+    with caplog.at_level(logging.WARNING):
+        for k in range(0, n, 100):
+            eng._on_samples(b[k:k + 100], k / 200.0)
+    eng._publish(30.0)
+    assert eng.status["dropped_temperature"] == {"out_of_range": 5, "spikes": 1}
+    seen = np.concatenate(fed)
+    assert seen.size == n - 6 and seen.min() >= 20.0 and seen.max() < 21.1
+    assert len([r for r in caplog.records if "unit temperature" in r.getMessage()]) == 1
+    # a real jump (a sensor re-initialised) is followed after RESYNC samples
+    from gyrocal.daemon.tempcheck import RESYNC
+
+    j = _samples(n, 200, 200.0)
+    j["temp"] = 35.0
+    eng._on_samples(j, 30.0)
+    eng._publish(31.0)
+    assert eng.status["dropped_temperature"]["spikes"] == 1 + RESYNC

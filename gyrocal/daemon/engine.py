@@ -55,6 +55,7 @@ from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session, same_boot
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import CalibrationStore
+from gyrocal.daemon.tempcheck import TEMP_MAX_C, TEMP_MIN_C, TemperatureCheck
 from gyrocal.drivers import open_link
 from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
@@ -129,6 +130,8 @@ class Engine(CommandsMixin):
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
+        self.temp_check = TemperatureCheck()  # daemon/tempcheck.py: temperatures no sensor reads
+        self._temp_said: tuple[float, int] = (-1e9, 0)  # when the last WARNING of them was, and the count
         self.samples_before_hello = 0
         self.sessions_started = 0
         self.push_results: list[dict[str, Any]] = []
@@ -488,6 +491,8 @@ class Engine(CommandsMixin):
         """A new session for ``hello``'s unit; ``from_hello``: the unit itself said who it is (a
         restart seen only in the samples reuses the last HELLO, whose boot counter proves nothing);
         ``resized``: the same switch-on, sized again for its measured rate (_check_rate)."""
+        if not resized:
+            self.temp_check.reset()  # the unit may have cooled or warmed since the last switch-on
         if not resized and not getattr(hello, "rate_hz", 0):
             # a switch-on that states no rate is sized from its own samples: the last boot's rate is only
             # the first guess, and its intervals must not outvote this boot's
@@ -538,6 +543,12 @@ class Engine(CommandsMixin):
             block = block[finite]
             if block.size == 0:
                 return
+        believable = self.temp_check.keep(block["t"], block["temp"])
+        if not believable.all():
+            self._say_temperature(block["temp"][~believable], now)
+            block = block[believable]
+            if block.size == 0:
+                return
         self._last_sample_at = now
         if self._silent:
             self._silent = False
@@ -557,6 +568,17 @@ class Engine(CommandsMixin):
                     "until it answers, but pushing nothing")
                 self._ask_hello(now)
             self._feed(part, now)
+
+    def _say_temperature(self, dropped_c: np.ndarray, now: float) -> None:
+        """One WARNING a minute at most for temperatures no sensor reads, with the counts so far."""
+        said_at, said_n = self._temp_said
+        if now - said_at >= 60.0:
+            tc = self.temp_check
+            log.warning("unit temperature: %d samples dropped since the last word (%d out of %g..%g degC, "
+                        "%d spikes in all; this one %.2f degC): a sensor or firmware fault, never learnt",
+                        tc.dropped - said_n, tc.out_of_range, TEMP_MIN_C, TEMP_MAX_C, tc.spikes,
+                        float(dropped_c[0]))
+            self._temp_said = (now, tc.dropped)
 
     def _feed(self, block: np.ndarray, now: float) -> None:
         self._measure_rate(block)
@@ -703,6 +725,8 @@ class Engine(CommandsMixin):
             self._silent = silent
         status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
                        "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
+                       "dropped_temperature": {"out_of_range": self.temp_check.out_of_range,
+                                               "spikes": self.temp_check.spikes},
                        "liveness": {"sample_age_s": None if age is None else round(age, 3),
                                     "silent": silent, "silent_after_s": SILENT_AFTER_S},
                        "sequence": {"outliers": self.seq.outliers, "restarts": self.seq.restarts,
