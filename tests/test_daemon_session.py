@@ -643,3 +643,22 @@ def test_a_temperature_no_sensor_reads_never_reaches_the_estimator(
     eng._on_samples(j, 30.0)
     eng._publish(31.0)
     assert eng.status["dropped_temperature"]["spikes"] == 1 + RESYNC
+
+
+def test_a_set_reported_unasked_that_differs_is_learnt_with_and_said(tmp_path: Path,
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """A ground station zeroed an autopilot's set after v1: the report the link sends unasked makes
+    the session rebuild the raw rate with the set the unit holds, restart its drift monitor, and say so."""
+    from gyrocal.protocol.messages import CoeffReport
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    h.run(5)
+    s = h.session
+    assert s is not None and s.applied is not None and s.applied.version == 1 and len(s.monitor)
+    zero = np.zeros_like(np.asarray(s.applied.coeffs_dps))
+    with caplog.at_level(logging.WARNING):
+        s.on_message(CoeffReport(0, s.applied.terms_id, zero.tolist()), h.now)
+    assert s.applied.version == 0 and not np.any(s.applied.coeffs_dps) and len(s.monitor) == 0
+    assert [r for r in caplog.records if "not written by this daemon" in r.getMessage()]

@@ -575,3 +575,27 @@ def test_a_push_cut_by_a_hang_puts_back_the_set_held_before_when_the_autopilot_a
             assert col.of(CoeffAck)[1].version == 5 and len(col.of(CoeffNak)) == 1
         finally:
             link.stop()
+
+
+def test_a_ground_station_s_write_of_the_compensation_is_reported_unasked(tmp_path: Path) -> None:
+    """After v4 was acked, a ground station wrote INS_TCAL1_ENABLE = 0. The link went on reporting v4,
+    the daemon rebuilt the raw rate with it, learnt a curve doubled by it and pushed a set worse than
+    none (an integrator's audit). The autopilot's broadcast PARAM_VALUE makes the link read at once,
+    and report the set it holds (v0) unasked."""
+    from gyrocal.mavlink.paramtx import ParamSet, encode_param
+
+    with sim("ardupilot", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffAck), 15)
+            enable = link.profile.enable
+            link._send_param(ParamSet(enable.name, encode_param(0.0, enable.ptype, link.profile.bytewise),
+                                      enable.ptype))  # written behind the link's back, as another GCS does
+            assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 0.0)
+            assert wait_for(lambda: col.of(CoeffReport), 5)  # well before the 10 s idle check
+            assert col.of(CoeffReport)[0].version == 0
+        finally:
+            link.stop()

@@ -362,6 +362,14 @@ class Session(RecoveryMixin):
             self.monitor.clear()
             log.info("unit %s: it holds v%d where v%d was: the drift monitor starts again", self.hello.serial,
                      applied.version, before.version)
+        elif before is None and self.applied is not None and not self.applied.same_as(applied):
+            # unasked, the unit reports a set other than the one learning rebuilds its raw rate with:
+            # a ground station wrote an autopilot's compensation (an integrator's audit: the daemon
+            # learnt a curve doubled by the set it assumed and pushed one worse than none)
+            self.monitor.clear()
+            log.warning("unit %s: it now holds v%d where v%d was, not written by this daemon: learning "
+                        "and the drift monitor go on with the set it holds", self.hello.serial,
+                        applied.version, self.applied.version)
         if self.applied is None:
             log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
                      applied.version, applied.terms_id)

@@ -40,7 +40,7 @@ from gyrocal.mavlink.paramtx import ParamPush, ParamRead, ParamReadAll, ParamRes
 from gyrocal.mavlink.profiles import BY_MAV_AUTOPILOT, PROFILES, Profile
 from gyrocal.mavlink.requests import UnitRequests
 from gyrocal.mavlink.state import LinkState
-from gyrocal.protocol.messages import CoeffRead, CoeffWrite, Hello, HelloRequest
+from gyrocal.protocol.messages import CoeffRead, CoeffReport, CoeffWrite, Hello, HelloRequest
 from gyrocal.protocol.termsets import TEMP_POLY3_TERMS, terms_id
 
 log = logging.getLogger(__name__)
@@ -289,6 +289,7 @@ class MavlinkLink(UnitRequests, Link):
         self._push_repeats = 0  # resends of the running push's write: each gets the push's answer
         self._restore: ParamRestore | None = None  # the set held before a push a reboot cut short
         self._read_when_heard = False  # a read cut by the autopilot's silence: read again when it answers
+        self._last_report: CoeffReport | None = None  # the set last reported or acked, this boot
         self._report_wanted = False
         self._source: str | None = None
         self._stream_asked_at: float | None = None
@@ -356,6 +357,11 @@ class MavlinkLink(UnitRequests, Link):
                 self._echo_n = self._imu_n
             if job is not None:
                 job.on_value(name, float(m.param_value), int(m.param_type), now)
+            elif name in self._params and self._hello is not None:
+                # unasked: an autopilot broadcasts every change, a ground station's too. A changed
+                # compensation parameter is read at once (with the rest), not at the next 10 s check:
+                # samples meanwhile are rebuilt with the set the daemon last read
+                self._checked_at = 0.0
         elif kind == "AUTOPILOT_VERSION":
             self._version_msg = m
         elif kind == "COMMAND_ACK":

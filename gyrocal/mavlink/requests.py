@@ -190,7 +190,7 @@ class UnitRequests:
                  and self.profile.rotation_of(res.params) != self._hello_rotation)
         if res.ok and self.profile is not None and not moved:
             self._remember(write, res.params, res.target, self._push_range)
-            rep = self._reported(self._params)
+            rep = self._last_report = self._reported(self._params)
             ack = CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps))
             out.extend([ack] * answers)
             if self.reboot_required:
@@ -342,9 +342,22 @@ class UnitRequests:
             # the configuration was fixed (a supported board rotation, a gyro calibration): serve again
             log.info("mavlink link: %s no longer applies", self.fault)
             self.fault = self._config_fault = None
+        rep = self._reported(self._params)
         if self._report_wanted:
             self._report_wanted = False
-            out.append(self._reported(self._params))
+            self._last_report = rep
+            out.append(rep)
+        elif check and self._hello is not None and self._last_report is not None \
+                and _crc(rep) != _crc(self._last_report):
+            # a ground station wrote the compensation between pushes: the daemon went on rebuilding the
+            # raw rate with the set it last read, learnt a curve doubled by it and pushed a set worse
+            # than none (an integrator's audit: 1607 deg/h left against 1255 uncompensated). The set
+            # the autopilot holds now is reported unasked, as at a read-back
+            log.warning("mavlink %s: the autopilot's compensation changed outside gyrocal (a ground "
+                        "station?): it held v%d, now %s", self.url, self._last_report.version,
+                        f"v{rep.version}" if rep.version else "a set gyrocal did not write (v0)")
+            self._last_report = rep
+            out.append(rep)
         self._check_rotation(out)
 
     def _check_rotation(self: MavlinkLink, out: list[Any]) -> None:
@@ -386,3 +399,8 @@ class UnitRequests:
         return (evaluate(diff, temps) + p.clamp_adjust(eff, temps))[0]
 
     # ---- time-driven steps -----------------------------------------------------------------------
+
+
+def _crc(rep: CoeffReport) -> int:
+    """What identifies a reported set: its CRC over version, term set and coefficients."""
+    return coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps)
