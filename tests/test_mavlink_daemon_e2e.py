@@ -147,3 +147,30 @@ def test_an_autopilot_that_hangs_during_the_first_push_is_calibrated_when_it_ans
     log = (tmp_path / "run.log").read_text()
     assert "heartbeat lost" in log and "read again when it answers" in log
     assert "UNKNOWN_TERMS" not in log and st["last_push"]["version"] == 1
+
+
+def test_an_autopilot_whose_imu_gives_no_temperature_is_a_fault_status_shows(tmp_path: Path) -> None:
+    """RAW_IMU's temperature 0 ("not provided"): every sample was dropped and status said "learning the
+    unit's noise level" for good, with no log line (an integrator's audit). After 10 s the link
+    reports a fault that status and the journal name."""
+    with SimProcess("--link", "mavlink", "--autopilot", "ardupilot", "--rate", "250", "--no-imu-temperature",
+                    tmp_path=tmp_path) as ap:
+        cfg = {
+            "link": {"kind": "mavlink", "url": ap.address, "mavlink": {"autopilot": "ardupilot"}},
+            "virtual_unit": {"enabled": False}, "estimator": {"terms": ["1", "temp", "temp^2"]},
+            "state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "ctl.sock"),
+            "watchdog": False,
+        }
+        (tmp_path / "cfg.yaml").write_text(json.dumps(cfg))
+        with (tmp_path / "run.log").open("wb") as log:
+            daemon = subprocess.Popen([sys.executable, "-m", "gyrocal.cli", "run", "--config",
+                                       str(tmp_path / "cfg.yaml")], stdout=log, stderr=subprocess.STDOUT)
+            try:
+                assert wait_for(lambda: "reports no temperature" in
+                                (daemon_status(tmp_path / "ctl.sock").get("reason") or ""), 40, poll_s=1.0), \
+                    (tmp_path / "run.log").read_text()[-2000:]
+            finally:
+                daemon.terminate()
+                daemon.wait(20)
+        text = (tmp_path / "run.log").read_text()
+        assert text.count("reports no temperature") >= 1 and "Traceback" not in text

@@ -63,6 +63,9 @@ STREAM_STALL_S = 1.0
 """IMU silence [s] with heartbeats present after which the stream is requested again."""
 VERSION_ASK_S = 2.0
 """[s] AUTOPILOT_VERSION is asked for again this long after an unanswered request (before HELLO)."""
+NO_TEMP_FAULT = "the autopilot's IMU "
+NO_TEMP_S = 10.0
+"""IMU samples with no temperature for this long [s] after the HELLO are a fault the status shows."""
 CHECK_EVERY_S = 10.0
 """[s] How often an idle link reads the autopilot's parameters again (board rotation, compensation)."""
 FRESH_S = 0.25
@@ -296,6 +299,7 @@ class MavlinkLink(UnitRequests, Link):
         self._version_asked_at = 0.0  # when AUTOPILOT_VERSION was last asked for
         self._read_retries = 0  # this boot's first parameter read, tried again (requests.READ_RETRIES)
         self._temp_c: float | None = None
+        self._no_temp_since = 0.0  # monotonic s of the first sample of this run without a temperature
         self._t_last: float | None = None
         self._imu_rx: float | None = None  # monotonic time of the last IMU message
         self._imu_n = 0  # IMU messages of this boot
@@ -475,7 +479,19 @@ class MavlinkLink(UnitRequests, Link):
             return
         if self._temp_c is None:
             self._extra["no_temperature_samples"] += 1
+            self._no_temp_since = self._no_temp_since or now
+            if now - self._no_temp_since > NO_TEMP_S and self.fault is None:
+                # SCALED_IMU/RAW_IMU temperature 0 is "not provided" (common.xml): every sample was
+                # dropped and status said "learning the unit's noise level" for good (an audit)
+                why = (f"{NO_TEMP_FAULT}{self.instance} reports no temperature ({temp_msg}.temperature "
+                       f"= 0, 'not provided') for {NO_TEMP_S:g} s: its thermal compensation cannot work, "
+                       "and gyrocal has no temperature to learn it over")
+                self._set_fault(why)
             return
+        if self.fault is not None and self.fault.startswith(NO_TEMP_FAULT) and self._no_temp_since:
+            log.info("mavlink %s: the IMU reports a temperature again", self.url)
+            self.fault = None
+        self._no_temp_since = 0.0
         if self._push is not None:
             self._extra["push_gap_samples"] += 1
             return

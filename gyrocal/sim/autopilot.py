@@ -51,13 +51,15 @@ RAD = math.pi / 180.0
 class AutopilotFaults:
     """Injected faults: drop the next N PARAM_VALUE answers to PARAM_SET; refuse writes of one parameter
     (the echo carries the value kept); reboot after the N-th PARAM_SET (0 = never); go silent after
-    the N-th PARAM_SET, unanswered, for ``silence_s`` [s], then go on in the same boot (0 = never)."""
+    the N-th PARAM_SET, unanswered, for ``silence_s`` [s], then go on in the same boot (0 = never);
+    send every IMU temperature as 0 ("not provided")."""
 
     drop_param_values: int = 0
     reject_param: str = ""
     reboot_after_sets: int = 0
     silence_after_sets: int = 0
     silence_s: float = 5.0
+    no_temperature: bool = False  # the IMU messages' temperature 0: "not provided" (common.xml)
 
 
 def default_thermal_dps(seed: int) -> np.ndarray:
@@ -280,13 +282,14 @@ class VirtualAutopilot:
             return d.MAVLink_highres_imu_message(
                 usec, *acc, *g, 0.2, 0.0, 0.4, 1013.0, 0.0, 100.0, temp - 3.0, 0x1FFF, 0
             )  # baro temperature, not the IMU's
-        temp_c = int(max(-32768, min(32767, temp * 100.0)))
+        temp_c = 0 if self.faults.no_temperature else int(max(-32768, min(32767, temp * 100.0)))
         mrad = [int(v) for v in gyro_dps * RAD * 1000.0]  # C float -> int16 truncates toward zero
         mg = [int(v) for v in acc * 1000.0 / G0]
         if mid == 27 and self.kind == "ardupilot":
             return d.MAVLink_raw_imu_message(usec, *mg, *mrad, 0, 0, 0, 0, temp_c)
         if mid == 26:
-            return d.MAVLink_scaled_imu_message(int(ts * 1000), *mg, *mrad, 0, 0, 0, temp_c or 1)
+            return d.MAVLink_scaled_imu_message(int(ts * 1000), *mg, *mrad, 0, 0, 0,
+                                                (temp_c or 1) if not self.faults.no_temperature else 0)
         return None
 
     # -- host messages --------------------------------------------------------------------------

@@ -257,6 +257,11 @@ def configure(p: argparse.ArgumentParser) -> None:
         help="fault: hang after the N-th PARAM_SET of a boot, unanswered, for --silence-for s (default 5), "
         "then go on in the same boot",
     )
+    g.add_argument(
+        "--no-imu-temperature",
+        action="store_true",
+        help="fault: send every IMU temperature as 0 (MAVLink's 'not provided')",
+    )
 
 
 def thermal_args(args: argparse.Namespace) -> tuple[tuple[float, ...], float | None, float | None]:
@@ -279,7 +284,7 @@ def thermal_args(args: argparse.Namespace) -> tuple[tuple[float, ...], float | N
 
 def main(args: argparse.Namespace) -> int:
     faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets,
-                             args.silence_after_sets, args.silence_for or 5.0)
+                             args.silence_after_sets, args.silence_for or 5.0, args.no_imu_temperature)
     ambients, rise, tau = thermal_args(args)
     ap = VirtualAutopilot(
         args.autopilot,
