@@ -58,6 +58,11 @@ def test_run_with_a_broken_config_prints_one_line_and_exits_2(tmp_path: Path, ca
     assert len(err) == 1 and "estimator.method" in err[0]
     assert main(["run", "--config", str(tmp_path / "missing.yaml")]) == 2
     assert "no such config file" in capsys.readouterr().err
+    # a Latin-1 degree sign in a comment: a traceback and a restart loop under systemd (an operator's audit)
+    path.write_bytes(b"link:\n  url: auto  # 20 \xb0C lab\n")
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "line 2: byte 0xb0 is not UTF-8" in err[0] and "save the file as UTF-8" in err[0]
 
 
 def test_run_with_an_unknown_port_starts_waiting_and_says_so_in_one_line(tmp_path: Path) -> None:

@@ -662,3 +662,19 @@ def test_a_set_reported_unasked_that_differs_is_learnt_with_and_said(tmp_path: P
         s.on_message(CoeffReport(0, s.applied.terms_id, zero.tolist()), h.now)
     assert s.applied.version == 0 and not np.any(s.applied.coeffs_dps) and len(s.monitor) == 0
     assert [r for r in caplog.records if "not written by this daemon" in r.getMessage()]
+
+
+def test_a_refused_reload_stays_in_the_status_line_until_a_good_one(tmp_path: Path) -> None:
+    """`systemctl reload` exits 0 and STATUS= said nothing of a refused reload, while the broken file
+    would fail the next start (an operator's audit). Status's reason says so until a good reload."""
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng._on_message(Hello(77, "1.0", 1, 200), 0.0)
+    eng.last_reload = {"utc": "", "ok": False, "error": "c.yaml: unknown field 'validation.blok_s'"}
+    eng._publish(1.0)
+    assert "refused at the last reload (c.yaml: unknown field 'validation.blok_s')" in eng.status["reason"]
+    assert "next start fails" in eng._last_status_line
+    eng.last_reload = {"utc": "", "ok": True}
+    eng._publish(2.0)
+    assert "refused" not in eng.status["reason"]

@@ -222,6 +222,12 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
         doc = yaml.load(p.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)
     except FileNotFoundError:
         raise ConfigError(f"{name}: no such config file; pass an existing file to --config") from None
+    except UnicodeDecodeError as err:
+        # a Latin-1 degree sign in a comment crashed `gyrocal run` with a traceback, a restart loop
+        # under systemd (an operator's audit)
+        line = p.read_bytes()[: err.start].count(b"\n") + 1
+        raise ConfigError(f"{name}: line {line}: byte 0x{err.object[err.start]:02x} is not UTF-8 (a degree "
+                          "sign or accent saved as Latin-1?); save the file as UTF-8") from None
     except OSError as err:
         raise ConfigError(f"{name}: cannot read the config ({err.strerror})") from None
     except yaml.YAMLError as err:

@@ -135,8 +135,12 @@ def check_socket_dir(directory: Path | str, server: bool) -> None:
     if st.st_uid == uid:
         return
     if server:
+        # most often the service's own directory, seen by an operator running a second daemon by hand:
+        # "remove it" alone would have deleted the live service's socket (an operator's audit)
         raise ConfigError(f"control socket directory {directory} belongs to another user ({_describe(st)}, "
-                          f"the daemon runs as uid {uid}); {fix}")
+                          f"the daemon runs as uid {uid}): if a gyrocal service uses it (systemctl status "
+                          "gyrocal), stop it first or give this daemon its own control_socket / --socket; "
+                          f"otherwise {fix}")
     if st.st_uid == 0:
         return
     pst = os.stat(real.parent)
@@ -262,8 +266,8 @@ class ControlServer:
                 sock.close()
                 raise ConfigError(f"control socket: cannot bind {self.path}: {err.strerror or err}; "
                                   f"fix: make {self.path.parent} writable by the daemon "
-                                  "(systemd: RuntimeDirectory=gyrocal) or choose another daemon.socket path"
-                                  ) from err
+                                  "(systemd: RuntimeDirectory=gyrocal) or choose another control_socket "
+                                  "(config) or --socket path") from err
             # chmod after bind: bind() creates the file with the umask applied, and the group must be able
             # to connect. The directory mode (RuntimeDirectoryMode=0750) limits who can reach it.
             os.chmod(self.path, self.mode)
@@ -286,7 +290,7 @@ class ControlServer:
             return
         if not stat.S_ISSOCK(st.st_mode):
             raise ConfigError(f"control socket: {self.path} exists and is not a socket; fix: remove it or "
-                              "choose another daemon.socket path")
+                              "choose another control_socket (config) or --socket path")
         probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         probe.settimeout(1.0)
         try:
@@ -301,7 +305,8 @@ class ControlServer:
         finally:
             probe.close()
         raise GyrocalError(f"another gyrocal daemon is listening on {self.path}; stop it first "
-                           "(systemctl stop gyrocal) or choose another daemon.socket path")
+                           "(systemctl stop gyrocal) or choose another control_socket (config) or --socket "
+                           "path")
 
     def stop(self) -> None:
         """Stop accepting, close client connections, join threads and remove the socket file."""

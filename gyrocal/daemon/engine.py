@@ -738,6 +738,12 @@ class Engine(CommandsMixin):
                        "loop_errors": self.loop_errors, "reload": self.last_reload,
                        "sessions": self.sessions_started, "config": self.cfg.source,
                        "rate_hz": self.rate_hz, "latency_s": self.latency_percentiles_s()})
+        if self.last_reload is not None and not self.last_reload["ok"]:
+            # systemd's STATUS= said nothing of it, `systemctl reload` exits 0, and the file that would
+            # fail the next start stayed on disk (an operator's audit)
+            status["reason"] = (f"{status.get('reason', '')}; the config on disk was refused at the last "
+                                f"reload ({self.last_reload['error']}): the running config stays, and the "
+                                "next start fails until the file is fixed")
         self.status = status
         line = f"{status['state']}: {status.get('reason', '')}"
         if line != self._last_status_line:
