@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -678,3 +679,19 @@ def test_a_refused_reload_stays_in_the_status_line_until_a_good_one(tmp_path: Pa
     eng.last_reload = {"utc": "", "ok": True}
     eng._publish(2.0)
     assert "refused" not in eng.status["reason"]
+
+
+def test_a_second_daemon_on_the_same_store_is_refused_in_one_line(tmp_path: Path) -> None:
+    """A second daemon beside the service (its own control socket) warm-started from the same store and
+    opened the same port: both flapped 4 times a second (two outside audits). The store is locked."""
+    from gyrocal.errors import GyrocalError
+
+    first, second = _engine_with_stub_link(tmp_path), _engine_with_stub_link(tmp_path)
+    first._lock_state_dir()
+    with pytest.raises(GyrocalError, match=rf"another gyrocal daemon \(pid {os.getpid()}\) uses the state"):
+        second._lock_state_dir()
+    first.link = None
+    first.close()
+    second._lock_state_dir()  # free again
+    second.link = None
+    second.close()

@@ -164,6 +164,10 @@ def test_a_lost_ack_is_reconciled_from_the_read_back(tmp_path: Path) -> None:
     assert rec.push["status"] == "applied_ack_lost" and rec.push["history"][0]["status"] == "timeout"
     assert h.store.latest(4242, acked_only=True).version == 1  # warm start and rollback may use it
     assert s.status()["unit_set"]["agree"]
+    # status's last_push follows the store's record: it kept saying 'timeout', readback_ok false, for a
+    # set the unit holds (a serial integrator's unplug mid-push)
+    lp = s.status()["last_push"]
+    assert lp["status"] == "applied_ack_lost" and lp["readback_ok"] is True and lp["acked_crc"] is not None
 
 
 def test_start_closes_abandoned_pushes_and_removes_leftover_temporaries(tmp_path: Path) -> None:

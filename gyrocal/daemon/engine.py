@@ -29,6 +29,7 @@ state is UNIT_SILENT (one log line on the transition, one on recovery, and in sy
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import queue
@@ -57,6 +58,7 @@ from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import CalibrationStore
 from gyrocal.daemon.tempcheck import TEMP_MAX_C, TEMP_MIN_C, TemperatureCheck
 from gyrocal.drivers import open_link
+from gyrocal.errors import GyrocalError
 from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
 
@@ -123,6 +125,7 @@ class Engine(CommandsMixin):
         self.detector = self._new_detector(1000.0)
         self.rate_hz: float | None = None  # measured from the samples' time stamps
         self.last_reload: dict[str, Any] | None = None  # the last SIGHUP's result, for status
+        self._lock_fh: Any = None  # <state_dir>/daemon.lock, locked while this daemon runs
         self._rate_dts: deque[float] = deque(maxlen=self.RATE_WINDOW)
         self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
         self._session_from_hello = False  # the session's start was a HELLO of the unit's (same_boot)
@@ -180,6 +183,7 @@ class Engine(CommandsMixin):
 
     def open(self, wait: bool = True) -> None:
         """Open the link (``wait=False``: start without the unit; the reader thread keeps trying)."""
+        self._lock_state_dir()
         self._tidy_store()
         self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
                               where=f"{self.cfg.source}: link", start=False)
@@ -191,6 +195,38 @@ class Engine(CommandsMixin):
         self.notifier.ready()
         self.notifier.status("waiting for the unit" if not self.link.connected
                              else "waiting for the unit's HELLO")
+
+    def _lock_state_dir(self) -> None:
+        """One daemon per store: an exclusive lock on ``<state_dir>/daemon.lock``, held while it runs.
+
+        Why: a second daemon (an operator's by hand beside the service, with its own control socket)
+        opened the same serial port and warm-started from the same store: both flapped link_lost /
+        link_up 4 times a second and shared the version counter (two outside audits). A state
+        directory that cannot be written is reported by the store as ever; no lock is taken then.
+        """
+        path = self.cfg.state_dir / "daemon.lock"
+        try:
+            self.cfg.state_dir.mkdir(parents=True, exist_ok=True)
+            fh = path.open("a+", encoding="utf-8")
+        except OSError as err:
+            log.warning("state directory %s: no lock file (%s): a second daemon on this store would not "
+                        "be refused", self.cfg.state_dir, err.strerror or err)
+            return
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.seek(0)
+            holder = fh.read().strip() or "a process"
+            fh.close()
+            raise GyrocalError(f"another gyrocal daemon ({holder}) uses the state directory "
+                               f"{self.cfg.state_dir}: one daemon per store; stop it first (systemctl stop "
+                               "gyrocal) or give this one its own state_dir (config) or --state-dir"
+                               ) from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()}\n")
+        fh.flush()
+        self._lock_fh = fh
 
     def _tidy_store(self) -> None:
         """At start (the only writer now): remove temporaries of interrupted writes, close abandoned
@@ -239,6 +275,9 @@ class Engine(CommandsMixin):
             self.control.stop()
         if self.link is not None:
             self.link.stop()
+        fh, self._lock_fh = self._lock_fh, None
+        if fh is not None:
+            fh.close()  # the lock goes with it
         log.info("stopped")
 
     def stop(self) -> None:

@@ -103,6 +103,14 @@ class RecoveryMixin:
                                                 own_boot_bias=self.caps.own_boot_bias)).as_dict()
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
+        lp = self.last_push
+        if self.agreement.get("store_status") == "applied_ack_lost" and lp.get("version") == msg.version \
+                and lp.get("status") not in APPLIED_STATUSES:
+            # the store's record became 'applied (ack lost)'; status's last_push kept saying 'timeout',
+            # readback_ok false, for a set the unit holds (a serial integrator's unplug mid-push)
+            self.last_push = {**lp, "status": "applied_ack_lost", "readback_ok": True,
+                              "acked_crc": crc,
+                              "reconciled_utc": utc_now()}
         note = self.agreement.get("note")
         if not self.agreement.get("agree") and note != self._disagreement_said:
             # one line per new disagreement, not per read-back: status keeps showing it (unit_set)

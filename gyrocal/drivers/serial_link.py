@@ -30,6 +30,9 @@ def _fix_hint(url: str, err: BaseException | None = None) -> str:
     errno_ = getattr(err, "errno", None)
     if errno_ is None and isinstance(err.__context__ if err is not None else None, OSError):
         errno_ = err.__context__.errno  # pyserial wraps the OSError
+    if "exclusively lock" in str(err or ""):  # pyserial's exclusive open: another process holds it
+        return ("another process holds the port open (another gyrocal daemon?): fuser -v " + url
+                + " names it; stop it, the daemon opens the port when it is free")
     if errno_ == 13 or "Permission denied" in str(err or ""):  # EACCES: the port is there
         return ("this user may not open it: add it to the port's group (ls -l the device; usually "
                 "dialout), or fix the udev rule's GROUP/MODE")
@@ -65,8 +68,11 @@ class SerialLink(Link):
 
     def _open(self) -> None:
         try:
+            # exclusive: a second daemon on the same port (its own state_dir and socket) took half the
+            # bytes of each, both flapping link_lost / link_up 4 times a second (two outside audits);
+            # now its open fails with one line, as the reconnect loop says
             port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.poll_s,
-                                         write_timeout=self.write_timeout_s)
+                                         write_timeout=self.write_timeout_s, exclusive=True)
         except (serial.SerialException, OSError, ValueError) as err:
             reason = str(err).splitlines()[0] if str(err) else type(err).__name__
             msg = f"serial port {self.url!r} cannot be opened ({reason}); {_fix_hint(self.url, err)}"
