@@ -155,6 +155,10 @@ def test_a_unit_mounted_at_one_pose_with_no_stored_set_gets_its_bias(tmp_path: P
     rec = h.store.latest(4242)
     c = np.asarray(rec.coefficients_dps)
     assert rec.stats["validation"]["stage"] == "bias" and np.all(c[:, 1:] == 0.0), c
+    # good at the pose seen, unknown elsewhere: no sphere figure (it said ~1 deg/h where the unit's
+    # drift over the sphere was 8.7/22.7/17.4: a serial integrator's vehicle unit)
+    pred = rec.stats["predicted_drift_dph"]
+    assert pred["constant_only"] and pred["left_sphere"] == pred["bound"] == {"x": None, "y": None, "z": None}
     after = h.unit.status()["drift_rms_compensated_dps"]
     for a in "xyz":
         assert after[a] * 5 <= before[a], (a, before[a], after[a])

@@ -1018,6 +1018,12 @@ class Session(RecoveryMixin):
         if "unseen_share" in self.prediction:
             self._push_prediction["unseen_share"] = round(float(self.prediction["unseen_share"]), 4)
         self._push_prediction["stage"] = stage
+        if stage == "bias" and self.learner.cold_ready:
+            # a constant alone, every other term 0 (a unit at one pose, a board at one temperature):
+            # good where the unit was seen, unknown elsewhere. Its sphere figure said 1.02 deg/h where
+            # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit)
+            nan = _xyz_dph(np.full(3, np.nan))
+            self._push_prediction.update(left_sphere=nan, bound=nan, constant_only=True)
         if kept:  # those axes hold the held set's rows: its own prediction, where its record has one
             held_left = self._held_info()[0]
             mask = np.array([a in kept for a in "xyz"])
