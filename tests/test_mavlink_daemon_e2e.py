@@ -174,3 +174,15 @@ def test_an_autopilot_whose_imu_gives_no_temperature_is_a_fault_status_shows(tmp
                 daemon.wait(20)
         text = (tmp_path / "run.log").read_text()
         assert text.count("reports no temperature") >= 1 and "Traceback" not in text
+
+
+def test_an_autopilot_whose_parameter_answers_are_lost_mid_push_is_calibrated_when_they_return(
+        tmp_path: Path) -> None:
+    """For 12 s from the 5th PARAM_SET of the first push, the ArduPilot applies every write but no
+    PARAM_VALUE reaches the daemon; heartbeats and RAW_IMU go on. The failed read-back became a link
+    fault latched for good: every later write and read refused, the compensation left off (an
+    integrator's audit). The link now reads again every 5 s, and the retry is acked."""
+    params, st = run_daemon_until_acked(tmp_path, "--mute-params-after-sets", "5", "--silence-for", "12")
+    log = (tmp_path / "run.log").read_text()
+    assert "reading again every 5 s" in log and "are read again" in log
+    assert "UNKNOWN_TERMS" not in log and st["last_push"]["version"] == 1

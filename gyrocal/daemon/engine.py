@@ -758,10 +758,12 @@ class Engine(CommandsMixin):
             status["state"] = "UNIT_SILENT"
             status["reason"] = (f"unit silent: no sample for {age:.0f} s" if age is not None
                                 else "unit silent: connected, but no sample yet")
-        elif self.session is not None and link_stats.get("fault"):
-            # a fault the link found after the HELLO (an autopilot whose IMU gives no temperature):
-            # the session's own reason ("only 0 of 500 samples") hid it (an integrator's audit)
-            status["reason"] = f"the link reports a fault: {link_stats['fault']}; {status.get('reason', '')}"
+        elif self.session is not None and (link_stats.get("fault") or link_stats.get("read_fault")):
+            # a fault the link found after the HELLO (an autopilot whose IMU gives no temperature, one
+            # that stopped answering parameter reads): the session's own reason ("only 0 of 500
+            # samples") hid it (an integrator's audit)
+            fault = link_stats.get("fault") or link_stats.get("read_fault")
+            status["reason"] = f"the link reports a fault: {fault}; {status.get('reason', '')}"
         if silent != self._silent:
             if silent:
                 log.warning("%s", status["reason"])

@@ -252,6 +252,7 @@ class MavlinkLink(UnitRequests, Link):
             **self._extra,
             "autopilot": self.profile.name if self.profile else None,
             "fault": self.fault,
+            "read_fault": self._read_fault,
             "imu_source": self._source,
             "reboot_required": self.reboot_required,
             "board_rotation": self.board_rotation,
@@ -291,7 +292,8 @@ class MavlinkLink(UnitRequests, Link):
         self._push_write: CoeffWrite | None = None
         self._push_repeats = 0  # resends of the running push's write: each gets the push's answer
         self._restore: ParamRestore | None = None  # the set held before a push a reboot cut short
-        self._read_when_heard = False  # a read cut by the autopilot's silence: read again when it answers
+        self._read_again_at: float | None = None  # monotonic s: a failed read is tried again from then
+        self._read_fault: str | None = None  # why the last read after the HELLO failed, until one succeeds
         self._last_report: CoeffReport | None = None  # the set last reported or acked, this boot
         self._report_wanted = False
         self._source: str | None = None
@@ -544,10 +546,11 @@ class MavlinkLink(UnitRequests, Link):
                     log.error("mavlink %s: the set held before the cut push could not be written back "
                               "(%s): compensation stays off until the next push", self.url, done.error)
                 self._reader = self._read_all(now)
-        if (self._read_when_heard and self._reader is None and self._push is None
-                and self._restore is None and not self._silent(now) and self._clock_seen(now)):
-            self._read_when_heard = False
-            log.info("mavlink %s: the autopilot answers again; reading its parameters", self.url)
+        if (self._read_again_at is not None and now >= self._read_again_at and self._reader is None
+                and self._push is None and self._restore is None and not self._silent(now)
+                and self._clock_seen(now)):
+            self._read_again_at = None
+            log.info("mavlink %s: reading the autopilot's parameters again", self.url)
             self._reader = self._read_all(now)
         if self._reader is not None:
             self._reader.tick(now)

@@ -48,6 +48,10 @@ out), so a parameter read that failed says nothing of its parameters and is trie
 answers (at 1 Hz heartbeats and a stream of 50 Hz or more, an autopilot that answers is heard within
 1 s)."""
 
+READ_AGAIN_S = 5.0
+"""A parameter read that failed after the HELLO, the autopilot answering otherwise, is tried again
+this often [s] until it succeeds (``_read_fault`` meanwhile)."""
+
 MIN_RANGE_C = 1.0
 """The narrowest TMIN..TMAX [degC] a set with temperature terms is written with (never extrapolated)."""
 
@@ -67,7 +71,7 @@ class UnitRequests:
                 return
             self._report_wanted = True
             if self._reader is None and self._push is None and self._restore is None \
-                    and not self._read_when_heard:
+                    and self._read_again_at is None:  # else the read due then answers
                 self._reader = self._read_all(now)
         elif isinstance(msg, CoeffWrite):
             self._start_push(msg, now, out)
@@ -128,6 +132,9 @@ class UnitRequests:
             return "the autopilot is not identified yet", NakReason.BUSY
         if self._restore is not None:
             return "the set held before a cut push is being written back", NakReason.BUSY
+        if self._read_fault is not None or self._read_again_at is not None:
+            return (f"{self._read_fault or 'the autopilot was silent'}; its parameters are read again first",
+                    NakReason.BUSY)
         if self.armed:
             return "the vehicle is armed; compensation is never changed in flight", NakReason.BUSY
         if self._push is not None:
@@ -212,10 +219,20 @@ class UnitRequests:
                 res.reason or "the board rotation changed during the push",
                 "previous set restored" if res.restored else "compensation left as read back",
             )
+            reason = res.nak or int(NakReason.BUSY)
+            if "no PARAM_VALUE" in (res.reason or "") and self._params:
+                # parameters this boot's read found went unanswered: their answers were lost (a busy
+                # downlink), the firmware has them. NAK UNKNOWN_TERMS is final, and the session pushed
+                # nothing more this switch-on, the compensation left off (an integrator's audit). BUSY,
+                # and the parameters are read again before the next write
+                reason = int(NakReason.BUSY)
+                self._read_fault = f"{self.profile.name if self.profile else 'autopilot'} parameters " \
+                                   f"unanswered: {res.reason}"
+                self._read_again_at = time.monotonic() + READ_AGAIN_S
             nak = CoeffNak(
                 write.version,
                 coeff_set_crc(write.version, write.terms_id, write.coeffs_dps),
-                res.nak or int(NakReason.BUSY),
+                reason,
             )
             out.extend([nak] * answers)
         if moved:
@@ -290,17 +307,33 @@ class UnitRequests:
                      reader.error, self._read_retries, READ_RETRIES)
             self._reader = self._read_all(time.monotonic())
             return
-        if reader.error and self._silent(time.monotonic()):
+        now = time.monotonic()
+        if reader.error and self._silent(now):
             # cut by the autopilot's silence (a hang after a push was cut, a cable out): it says nothing
             # of the parameters. As a fault, it NAKed every later write UNKNOWN_TERMS (final) and left an
             # ArduPilot with its compensation off for the switch-on (a hang at the 23rd PARAM_SET)
-            self._read_when_heard = True
+            self._read_again_at = now
             log.warning("mavlink %s: parameter read cut short, the autopilot is silent (%s); read again "
                         "when it answers", self.url, reader.error)
+            return
+        if reader.error and self._hello is not None:
+            # the autopilot answers (heartbeats, IMU) but not the parameter protocol: lost echoes, a
+            # busy downlink. It read the parameters at this boot's start, so this is no configuration
+            # fault: latched as one, it refused every later write and read for good, the compensation
+            # left off mid-push (20 s of lost PARAM_VALUE: an integrator's audit). Read again every
+            # READ_AGAIN_S; writes are NAKed BUSY meanwhile
+            why = f"cannot read {self.profile.name} compensation parameters: {reader.error}"
+            if why != self._read_fault:
+                log.warning("mavlink %s: %s; reading again every %g s, writes wait", self.url, why,
+                            READ_AGAIN_S)
+            self._read_fault, self._read_again_at = why, now + READ_AGAIN_S
             return
         if reader.error:
             self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
             return
+        if self._read_fault is not None:
+            log.info("mavlink %s: the compensation parameters are read again", self.url)
+            self._read_fault = None
         self._params = dict(reader.values)
         self._adj = None
         if self._boot_params is None:

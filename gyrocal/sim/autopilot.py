@@ -52,7 +52,8 @@ class AutopilotFaults:
     """Injected faults: drop the next N PARAM_VALUE answers to PARAM_SET; refuse writes of one parameter
     (the echo carries the value kept); reboot after the N-th PARAM_SET (0 = never); go silent after
     the N-th PARAM_SET, unanswered, for ``silence_s`` [s], then go on in the same boot (0 = never);
-    send every IMU temperature as 0 ("not provided")."""
+    send every IMU temperature as 0 ("not provided"); after the N-th PARAM_SET, apply every write but
+    answer no parameter message for ``silence_s`` (a downlink that loses them), the stream going on."""
 
     drop_param_values: int = 0
     reject_param: str = ""
@@ -60,6 +61,7 @@ class AutopilotFaults:
     silence_after_sets: int = 0
     silence_s: float = 5.0
     no_temperature: bool = False  # the IMU messages' temperature 0: "not provided" (common.xml)
+    mute_params_after_sets: int = 0  # after the N-th PARAM_SET, no PARAM_VALUE for silence_s [s]
 
 
 def default_thermal_dps(seed: int) -> np.ndarray:
@@ -137,6 +139,7 @@ class VirtualAutopilot:
         self.sets_seen = 0
         self.reboot_pending = False
         self.silence_pending = False  # AutopilotFaults.silence_after_sets: the runner stops sending
+        self._params_muted_until = -1.0  # unit time [s] until which no PARAM_VALUE is sent
         self.uid = int(np.random.default_rng([seed, 0x51D]).integers(1, 2**63))
         self._rng = np.random.default_rng([seed, 0xA7])
 
@@ -299,11 +302,17 @@ class VirtualAutopilot:
             msg, "target_system", self.sysid
         ) not in (0, self.sysid):
             return []
+        muted = t_s < self._params_muted_until
         if kind == "PARAM_REQUEST_READ":
             name = _name(msg.param_id)
-            return [self._param_value(name)] if name in self.params else []
+            return [self._param_value(name)] if name in self.params and not muted else []
         if kind == "PARAM_SET":
-            return self._param_set(msg, t_s)
+            out = self._param_set(msg, t_s)
+            f = self.faults
+            if f.mute_params_after_sets and self.sets_seen == f.mute_params_after_sets:
+                f.mute_params_after_sets = 0
+                self._params_muted_until = t_s + f.silence_s
+            return [] if t_s < self._params_muted_until else out
         if kind == "COMMAND_LONG":
             return self._command(msg, t_s)
         return []

@@ -258,6 +258,14 @@ def configure(p: argparse.ArgumentParser) -> None:
         "then go on in the same boot",
     )
     g.add_argument(
+        "--mute-params-after-sets",
+        type=int,
+        default=0,
+        metavar="N",
+        help="fault: after the N-th PARAM_SET of a boot, apply writes but send no PARAM_VALUE for "
+        "--silence-for s (default 5); the stream and heartbeats go on",
+    )
+    g.add_argument(
         "--no-imu-temperature",
         action="store_true",
         help="fault: send every IMU temperature as 0 (MAVLink's 'not provided')",
@@ -284,7 +292,8 @@ def thermal_args(args: argparse.Namespace) -> tuple[tuple[float, ...], float | N
 
 def main(args: argparse.Namespace) -> int:
     faults = AutopilotFaults(args.drop_param_values, args.reject_param, args.reboot_after_sets,
-                             args.silence_after_sets, args.silence_for or 5.0, args.no_imu_temperature)
+                             args.silence_after_sets, args.silence_for or 5.0, args.no_imu_temperature,
+                             args.mute_params_after_sets)
     ambients, rise, tau = thermal_args(args)
     ap = VirtualAutopilot(
         args.autopilot,
