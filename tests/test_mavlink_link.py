@@ -599,3 +599,24 @@ def test_a_ground_station_s_write_of_the_compensation_is_reported_unasked(tmp_pa
             assert col.of(CoeffReport)[0].version == 0
         finally:
             link.stop()
+
+
+def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp_path: Path) -> None:
+    """INS_TCAL1_ENABLE = 2: ArduPilot's own learning run, which its user started from a cold board.
+    The first push wrote ENABLE = 0 and ended it unseen (an integrator's audit). Writes are NAKed BUSY
+    with the reason until the run ends."""
+    import json as _json
+
+    flash = {"params": {"INS_TCAL1_ENABLE": 2.0}, "boot_count": 0}
+    (tmp_path / "ap-flash.json").write_text(_json.dumps(flash))
+    with sim("ardupilot", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
+        try:
+            assert wait_for(lambda: col.of(Hello), 15)
+            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: col.of(CoeffNak), 10)
+            assert col.of(CoeffNak)[0].reason == NakReason.BUSY and not col.of(CoeffAck)
+            assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 2.0)
+        finally:
+            link.stop()

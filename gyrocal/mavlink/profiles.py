@@ -182,6 +182,11 @@ class Profile(ABC):
     def is_enabled(self, p: Mapping[str, float]) -> bool:
         return p.get(self.enable.name) == 1.0
 
+    def learning(self, p: Mapping[str, float]) -> bool:
+        """The autopilot is learning its own temperature calibration (ArduPilot INS_TCALn_ENABLE = 2,
+        a run its user started from a cold board): a push would end it unseen (an integrator's audit)."""
+        return self.name == "ardupilot" and p.get(self.enable.name) == 2.0
+
     def check_range(self, q_dps: np.ndarray, tmin: float, tmax: float) -> str | None:
         """Refuse a set whose offset over [tmin, tmax] is beyond what a gyro offset can be."""
         if not np.all(np.isfinite(q_dps)):

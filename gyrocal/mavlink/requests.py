@@ -132,6 +132,10 @@ class UnitRequests:
             return "the autopilot is not identified yet", NakReason.BUSY
         if self._restore is not None:
             return "the set held before a cut push is being written back", NakReason.BUSY
+        if self.profile.learning(self._params):
+            return (f"the autopilot is learning its own temperature calibration ({self.profile.enable.name} "
+                    "= 2): gyrocal writes nothing until it ends (it sets 1), or set 0 to let gyrocal "
+                    "calibrate", NakReason.BUSY)
         if self._read_fault is not None or self._read_again_at is not None:
             return (f"{self._read_fault or 'the autopilot was silent'}; its parameters are read again first",
                     NakReason.BUSY)
