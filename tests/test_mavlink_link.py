@@ -620,3 +620,26 @@ def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp
             assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 2.0)
         finally:
             link.stop()
+
+
+def test_an_imu_the_autopilot_does_not_have_is_a_fault_that_names_the_instance(tmp_path: Path) -> None:
+    """instance: 1 on a one-IMU autopilot. Status said WAIT_HELLO "0 samples received" for good, which
+    sends an operator to the cable (an integrator's audit). Without its parameters (the virtual
+    autopilots have one IMU), the read fault names the instance; with them but no message of that IMU
+    for 10 s of heartbeats, so does the link's fault."""
+    from gyrocal.mavlink import link as link_mod
+
+    with sim("px4", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", instance=1)
+        try:
+            assert wait_for(lambda: link.fault is not None, 20)
+            assert "TC_G1_" in link.fault and "link.mavlink.instance" in link.fault and not col.of(Hello)
+        finally:
+            link.stop()
+    lk = MavlinkLink("udpin:127.0.0.1:0", RingBuffer(1 << 10), lambda m: None, state_file=None,
+                     autopilot="ardupilot", instance=1)
+    lk._stream_asked_at, lk._boot.last_hb, lk._version_asked_at = 0.0, link_mod.NO_IMU_S, link_mod.NO_IMU_S
+    lk._reader, lk._source = None, "SCALED_IMU2"
+    lk._command = lambda *a: None  # type: ignore[method-assign]  # no connection here
+    lk._tick(link_mod.NO_IMU_S + 0.5, [])
+    assert lk.fault is not None and "IMU 1" in lk.fault and "SCALED_IMU2" in lk.fault

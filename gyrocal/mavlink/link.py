@@ -63,6 +63,9 @@ STREAM_STALL_S = 1.0
 """IMU silence [s] with heartbeats present after which the stream is requested again."""
 VERSION_ASK_S = 2.0
 """[s] AUTOPILOT_VERSION is asked for again this long after an unanswered request (before HELLO)."""
+NO_IMU_FAULT = "the autopilot sends nothing of IMU "
+NO_IMU_S = 10.0
+"""Heartbeats but no message of the asked IMU for this long [s] after asking: a fault status names."""
 NO_TEMP_FAULT = "the autopilot's IMU "
 NO_TEMP_S = 10.0
 """IMU samples with no temperature for this long [s] after the HELLO are a fault the status shows."""
@@ -460,6 +463,14 @@ class MavlinkLink(UnitRequests, Link):
         r = imu_mod.decode(m)
         if r is None:
             return
+        if not any(r.gyro_dps) and not any(r.accel_g):
+            # ArduPilot sends SCALED_IMU2/3 all zero for an IMU it does not have: no such IMU, not a
+            # unit at 0 g (there is always gravity)
+            self._extra["all_zero_messages"] = self._extra.get("all_zero_messages", 0) + 1
+            return
+        if self.fault is not None and self.fault.startswith(NO_IMU_FAULT):
+            log.info("mavlink %s: IMU %d's messages arrive", self.url, self.instance)
+            self.fault = None
         if self._boot.on_time(r.t_s):
             self._new_boot(out, "boot time went back")
             self._stream_asked_at = None
@@ -530,6 +541,16 @@ class MavlinkLink(UnitRequests, Link):
             and self.profile is not None
         ):
             self._fallback(now)
+        if (self._imu_rx is None and self._stream_asked_at is not None and self.fault is None
+                and now - self._stream_asked_at > NO_IMU_S and self.profile is not None
+                and self._boot.last_hb is not None and now - self._boot.last_hb < self.heartbeat_timeout_s):
+            # heartbeats, but none of the asked IMU's messages: an IMU the autopilot does not have (a
+            # one-IMU ArduPilot sends no SCALED_IMU2). WAIT_HELLO "0 samples received" sent the
+            # operator to the cable (an integrator's audit)
+            msg = imu_mod.temp_message(self.profile.name, self.instance)
+            self._set_fault(f"{NO_IMU_FAULT}{self.instance}: no HIGHRES_IMU or {msg} for {NO_IMU_S:g} s, "
+                            "although the autopilot answers and was asked for them: does it have that "
+                            "IMU? check link.mavlink.instance (0..2)")
         if self._push is not None:
             self._push.tick(now)
             self._finish_push(out)

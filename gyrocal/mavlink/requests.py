@@ -333,7 +333,9 @@ class UnitRequests:
             self._read_fault, self._read_again_at = why, now + READ_AGAIN_S
             return
         if reader.error:
-            self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}")
+            hint = (f"; IMU {self.instance}: does the autopilot have it? check link.mavlink.instance (0..2)"
+                    if self.instance else "")
+            self._set_fault(f"cannot read {self.profile.name} compensation parameters: {reader.error}{hint}")
             return
         if self._read_fault is not None:
             log.info("mavlink %s: the compensation parameters are read again", self.url)
