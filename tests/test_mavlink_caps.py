@@ -108,3 +108,21 @@ def test_a_unit_that_holds_less_gets_its_part_and_the_store_keeps_the_rest(tmp_p
     assert rec2.version == rec.version + 1 and rec2.terms == list(SEED000_TERMS)
     assert rec2.stats["predicted_drift_dph"]["stage"] == "bias", rec2.stats["predicted_drift_dph"]
     assert rec2.host_remainder["terms"] == terms  # the learnt rest still kept for the host
+
+
+def test_a_set_held_at_a_hello_that_needs_a_reboot_says_so(tmp_path: Path) -> None:
+    """A PX4 that booted with TC_G_ENABLE 0 and holds v1 (the link wrote it back after a push cut by
+    a reboot): status said "applied v1, as the store says" and no reboot_needed, while that boot
+    applied nothing (an integrator's audit)."""
+    from gyrocal.protocol.messages import CoeffReport
+    from gyrocal.protocol.termsets import terms_id
+
+    caps = UnitCapabilities("test unit", (tuple(SEED000_TERMS),), 21, reboot_required=True)
+    h = Harness.make(tmp_path)
+    hello = h.unit.power_on()
+    s = Session(h.cfg, hello[0], make_learner(h.cfg, None, RATE_HZ), h.store, h.send, h.now, RATE_HZ,
+                caps=caps)
+    coeffs = np.full((3, len(SEED000_TERMS)), 1e-3)
+    s.on_message(CoeffReport(1, terms_id(list(SEED000_TERMS)), coeffs.tolist()), 0.0)
+    assert s.reboot_needed is not None and s.reboot_needed["version"] == 1
+    assert "REBOOT NEEDED" in format_status(s.status(), 100)

@@ -370,6 +370,17 @@ class Session(RecoveryMixin):
             log.warning("unit %s: it now holds v%d where v%d was, not written by this daemon: learning "
                         "and the drift monitor go on with the set it holds", self.hello.serial,
                         applied.version, self.applied.version)
+        if self.applied is None and self.caps.reboot_required and applied.version > 0 \
+                and self.reboot_needed is None:
+            # a PX4 that booted with TC_G_ENABLE 0 holds a set it applies only after its next reboot,
+            # whoever wrote it (the link's write-back after a push cut by a reboot): status said
+            # "applied v1, as the store says" with no reboot_needed while the boot applied nothing
+            # (an integrator's audit)
+            self.reboot_needed = {"version": applied.version, "why": f"the unit ({self.caps.kind}) started "
+                                  "this boot with its compensation off: the set it holds applies only after "
+                                  "its next reboot"}
+            log.warning("unit %s: it holds v%d, which takes effect at its next reboot", self.hello.serial,
+                        applied.version)
         if self.applied is None:
             log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
                      applied.version, applied.terms_id)
