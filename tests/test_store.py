@@ -407,3 +407,19 @@ def test_a_read_only_state_directory_at_start_is_a_fault_not_an_exit(tmp_path: P
     blocker.write_text("")
     with pytest.raises(ConfigError, match=r"point state_dir in the config"):
         CalibrationStore(blocker / "state")
+    # a readable state directory with no store in it yet, on a read-only mount (a vehicle's first boot
+    # on a read-only /var): it stopped `gyrocal run` with exit 2 (an operator's audit)
+    import errno
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    real_mkdir = Path.mkdir
+
+    def ro_mkdir(self: Path, *a: object, **k: object) -> None:
+        if str(self).startswith(str(empty)):
+            raise OSError(errno.EROFS, "Read-only file system")
+        real_mkdir(self, *a, **k)
+
+    monkeypatch.setattr(Path, "mkdir", ro_mkdir)
+    s = CalibrationStore(empty)
+    assert s.read_only and "Read-only file system" in s.read_only and s.units() == []

@@ -501,6 +501,11 @@ class Session(RecoveryMixin):
             # enough drift (the gate)
             return ""
         rank = lr.rank
+        if rank >= lr.full_rank:
+            # the data has reached the rank: a full set is what is held back (by the store, the gate);
+            # "learning its constant alone ... until the data reaches the rank" was said at rank 9 of 9,
+            # before a full set was pushed (an operator's audit)
+            return ""
         if rank != self._rank_since[0]:
             self._rank_since = (rank, self._t_last)
         stalled = self._t_last - self._rank_since[1]

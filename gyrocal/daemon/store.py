@@ -267,6 +267,15 @@ class CalibrationStore:
         try:
             self.units_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
+            if (not self.units_dir.exists() and self.state_dir.is_dir()
+                    and os.access(self.state_dir, os.R_OK | os.X_OK)):
+                # a readable state directory that cannot be written, with no store in it yet (a vehicle's
+                # first boot on a read-only /var): the same fault as a full one, not an exit (it stopped
+                # `gyrocal run` with exit 2, a restart loop under systemd: an operator's audit)
+                self.read_only = f"{self.state_dir} cannot be written ({err.strerror or err})"
+                log.error("calibration store: %s: the daemon runs and learns, but records and pushes no "
+                          "set until it can be written (status: faults.store); %s", self.read_only, fix)
+                return
             if not (self.units_dir.is_dir() and os.access(self.units_dir, os.R_OK | os.X_OK)):
                 raise ConfigError(f"calibration store: cannot use state directory {self.state_dir}: "
                                   f"{err.strerror or err}; {fix}") from err
@@ -296,6 +305,8 @@ class CalibrationStore:
                 for entry in os.scandir(self.units_dir):
                     if entry.is_dir() and entry.name.isdigit():
                         out.add(int(entry.name))
+            except FileNotFoundError:
+                pass  # no store yet (a read-only state directory at a first start)
             except OSError as err:
                 log.warning("calibration store: cannot list %s: %s", self.units_dir, err)
             return sorted(out)
