@@ -130,6 +130,8 @@ class Engine(CommandsMixin):
         self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
         self._session_from_hello = False  # the session's start was a HELLO of the unit's (same_boot)
         self._link_up_at: float | None = None  # when the link last came up [s, the engine's clock]
+        self._flaps: deque[float] = deque()  # times of the link's losses in the last FLAP_WINDOW_S
+        self._flap_said_at = -1e9
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
@@ -509,13 +511,31 @@ class Engine(CommandsMixin):
         if self.session is not None:
             self.session.on_message(msg, now, last_seq)
 
+    FLAP_WINDOW_S = 60.0
+    FLAP_SAY = 3
+    """More link losses than this in FLAP_WINDOW_S [s]: one WARNING a minute, the rest at DEBUG."""
+
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
         if name == "reconnecting":  # every back-off round: one line when the state changes only
             first = self._link_state != "reconnecting"
             log.log(logging.WARNING if first else logging.DEBUG, "waiting for the unit: %s", detail)
             self._link_state = name
             return
-        log.log(logging.INFO if name == "link_up" else logging.WARNING, "link %s %s", name, detail)
+        level = logging.INFO if name == "link_up" else logging.WARNING
+        if name == "link_lost":
+            self._flaps.append(now)
+        while self._flaps and now - self._flaps[0] > self.FLAP_WINDOW_S:
+            self._flaps.popleft()
+        if name in ("link_lost", "link_up") and len(self._flaps) > self.FLAP_SAY:
+            # a loose connector: 5-10 lines and 1-3 WARNINGs per flap, 58k WARNINGs a day at one flap
+            # every 1.5 s (an operator's audit). One WARNING a minute sums it up; each flap at DEBUG
+            level = logging.DEBUG
+            if now - self._flap_said_at >= self.FLAP_WINDOW_S:
+                self._flap_said_at = now
+                log.warning("link %s: lost %d times in the last %.0f s (a loose connector?); each loss and "
+                            "return is logged at DEBUG until it settles", detail, len(self._flaps),
+                            self.FLAP_WINDOW_S)
+        log.log(level, "link %s %s", name, detail)
         self._link_state = name
         if name == "link_up":
             self._link_up_at = now
