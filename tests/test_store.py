@@ -278,8 +278,8 @@ def test_prune_keeps_the_newest_versions_and_every_set_the_unit_may_hold(tmp_pat
         store.add(make_record(seed=i))
     for v in range(13, 31):
         store.update_push(1234, v, {"status": "nak"})
-    for v, utc in ((2, "2026-11-20T10:00:00.000000Z"), (3, "2026-11-01T10:00:00.000000Z"),
-                   (8, "2026-11-02T10:00:00.000000Z"), (5, "2026-10-01T10:00:00.000000Z")):
+    for v, utc in ((5, "2026-10-01T10:00:00.000000Z"), (3, "2026-11-01T10:00:00.000000Z"),
+                   (8, "2026-11-02T10:00:00.000000Z"), (2, "2026-11-20T10:00:00.000000Z")):  # ack order
         store.update_push(1234, v, {"status": "acked", "utc": utc})
     for v in (1, 4, 6, 7, 9, 10, 11):
         store.update_push(1234, v, {"status": "timeout"})
@@ -333,6 +333,20 @@ def test_the_warm_start_is_the_set_the_unit_held_last_not_the_newest(tmp_path: P
     assert store.held_last(5).version == 2 and store.latest(5).version == 3
     assert CalibrationStore(tmp_path).held_last(5).version == 2
     assert CalibrationStore(tmp_path / "none").held_last(5) is None
+
+
+def test_the_set_held_last_is_the_last_acked_whatever_the_wall_clock_said(tmp_path: Path) -> None:
+    """v1 was acked while the clock ran 400 days ahead; NTP corrected it and v2 was acked. By push
+    utc, v1 stayed the set held last: every switch-on warm-started from its gravity terms and left
+    100x the drift (an operator's audit). Acks are counted (push.held_seq)."""
+    store = CalibrationStore(tmp_path)
+    for i in range(2):
+        store.add(make_record(serial=5, seed=i))
+    store.update_push(5, 1, {"status": "acked", "utc": "2027-12-30T10:00:00.000000Z"})  # clock ahead
+    store.update_push(5, 2, {"status": "acked", "utc": "2026-11-24T10:00:00.000000Z"})  # corrected
+    for s in (store, CalibrationStore(tmp_path)):
+        assert s.held_last(5).version == 2
+        assert [s.get(5, v).push["held_seq"] for v in (1, 2)] == [1, 2]
 
 
 def test_a_failed_rollback_never_erases_that_the_unit_held_the_version(tmp_path: Path) -> None:

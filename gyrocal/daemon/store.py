@@ -333,16 +333,24 @@ class CalibrationStore:
             return None
 
     def held_last(self, serial: int) -> CalibrationRecord | None:
-        """The set the unit verifiably held last: the applied record pushed latest (push ``utc``), the
-        highest version among equals. The warm start: after an operator's rollback to v2 the unit
-        holds v2, and a restart that warm-started from the newest version (v7) pushed v7's set back
-        at its bias stage, undoing the rollback (an operator's audit)."""
+        """The set the unit verifiably held last: the applied record whose ack (or read-back) came
+        last, by ``push.held_seq`` (a count, +1 at each), then push ``utc`` for records written
+        before it, the highest version among equals. The warm start: after an operator's rollback to
+        v2 the unit holds v2, and a restart that warm-started from the newest version (v7) pushed
+        v7's set back at its bias stage, undoing the rollback (an operator's audit). By ``utc``
+        alone, a wall clock corrected backwards (NTP, GPS) made an older set the last held: every
+        switch-on warm-started from it, its gravity terms 100x off (an operator's audit)."""
         with self._lock:
             recs = self._load(serial)
             applied = [v for v in recs if recs[v].push.get("status") in APPLIED_STATUSES]
             if not applied:
                 return None
-            return recs[max(applied, key=lambda v: (str(recs[v].push.get("utc") or ""), v))]
+
+            def order(v: int) -> tuple[int, str, int]:
+                seq = recs[v].push.get("held_seq")
+                return (seq if isinstance(seq, int) else -1, str(recs[v].push.get("utc") or ""), v)
+
+            return recs[max(applied, key=order)]
 
     def next_version(self, serial: int) -> int:
         """One more than the highest version on disk, counting unreadable files so none is reused."""
@@ -491,6 +499,11 @@ class CalibrationStore:
                 log.warning("calibration store: unit %d version %d: a later push of it ended %s; the record "
                             "stays %s (the unit held it), the attempt is in push.history", serial, version,
                             status, held)
+            if status in APPLIED_STATUSES:
+                # the order the unit was seen holding sets in, which no clock correction reorders
+                # (held_last)
+                seqs = [r.push.get("held_seq") for r in self._load(serial).values()]
+                push = {**push, "held_seq": 1 + max([s for s in seqs if isinstance(s, int)], default=0)}
             merged = {**rec.push, **push}
             _check_push_status(merged.get("status"))
             if merged.get("status") not in PUSH_STATUSES:
