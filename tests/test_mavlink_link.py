@@ -643,3 +643,20 @@ def test_an_imu_the_autopilot_does_not_have_is_a_fault_that_names_the_instance(t
     lk._command = lambda *a: None  # type: ignore[method-assign]  # no connection here
     lk._tick(link_mod.NO_IMU_S + 0.5, [])
     assert lk.fault is not None and "IMU 1" in lk.fault and "SCALED_IMU2" in lk.fault
+
+
+def test_a_px4_external_gyro_with_its_own_rotation_is_refused(tmp_path: Path) -> None:
+    """CAL_GYRO0_ROT = 4: an external gyro follows its own rotation, not SENS_BOARD_ROT. The set,
+    learnt and written in the board frame, was applied with x and y of the wrong sign (1957/1379
+    deg/h left against 1136/821 uncompensated) while status said "agree" (an integrator's audit).
+    It is a fault naming the parameter; an internal gyro (-1) is served as before."""
+    import json as _json
+
+    (tmp_path / "ap-flash.json").write_text(_json.dumps({"params": {"CAL_GYRO0_ROT": 4.0}, "boot_count": 0}))
+    with sim("px4", tmp_path) as ap:
+        link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
+        try:
+            assert wait_for(lambda: link.fault is not None, 20)
+            assert "CAL_GYRO0_ROT = 4" in link.fault and not col.of(Hello)
+        finally:
+            link.stop()

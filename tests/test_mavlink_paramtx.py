@@ -231,3 +231,20 @@ def test_an_unknown_parameter_fails_with_a_clear_error() -> None:
         and "INS_TCAL1_GYR3_Z" in reader.error
         and "lacks the parameter" in reader.error
     )
+
+
+def test_an_optional_parameter_this_firmware_lacks_is_taken_as_absent_not_a_fault() -> None:
+    """CAL_GYROn_ROT exists from PX4 1.12: an older firmware does not answer it. The read goes on
+    without it, and later reads do not ask again."""
+    from gyrocal.mavlink.paramtx import OpRunner
+    from gyrocal.mavlink.profiles import Px4
+
+    prof = Px4(0)
+    sent: list[object] = []
+    io = OpRunner(prof, sent.append, 0.5, 2)
+    io.values.update({"SENS_BOARD_ROT": 0.0})
+    assert io.read_extra(0.0) and sent[-1].name == "CAL_GYRO0_ROT"
+    for t in (0.6, 1.2):
+        io.tick(t)
+    assert io.done and io.error is None and prof.absent == {"CAL_GYRO0_ROT"}
+    assert not io.read_extra(2.0)  # not asked again

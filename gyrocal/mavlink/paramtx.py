@@ -59,6 +59,7 @@ class ParamRead:
 class _Op:
     name: str
     value: float | None = None  # None: read
+    optional: bool = False  # a read some firmware does not answer (Profile.optional): skipped then
 
 
 class OpRunner:
@@ -104,12 +105,13 @@ class OpRunner:
     def read_extra(self, now: float) -> bool:
         """After a full read: ask for the profile's extra_context parameters not read yet (once).
         Returns True when it started reads (the caller waits for ``done`` again)."""
-        extra = [q for q in self.profile.extra_context(self.values) if q.name not in self.values]
+        extra = [q for q in self.profile.extra_context(self.values)
+                 if q.name not in self.values and q.name not in self.profile.absent]
         if not extra or self.error:
             return False
         for q in extra:
             self.types[q.name] = q.ptype
-        self.start([_Op(q.name) for q in extra], now)
+        self.start([_Op(q.name, optional=q.name in self.profile.optional) for q in extra], now)
         return True
 
     def _issue(self, now: float, first: bool) -> None:
@@ -164,6 +166,12 @@ class OpRunner:
             return
         if self._tries >= self.retries:
             op = self._ops[0]
+            if op.optional and op.value is None:  # this firmware lacks it: not asked for again
+                self.profile.absent.add(op.name)
+                log.info("%s not answered: taken as absent on this firmware", op.name)
+                self._ops.pop(0)
+                self._issue(now, first=True)
+                return
             what = "read" if op.value is None else "write"
             self.error = (
                 f"{op.name}: no PARAM_VALUE after {self._tries} {what} request(s) (the autopilot "

@@ -92,6 +92,11 @@ class Profile(ABC):
         if not 0 <= instance <= 2:
             raise ValueError(f"IMU instance {instance} must be 0, 1 or 2")
         self.instance = instance
+        self.absent: set[str] = set()
+        """Optional parameters (``optional``) this firmware did not answer: not asked for again."""
+
+    optional: frozenset[str] = frozenset()
+    """extra_context parameters some firmware lacks: unanswered, they are taken as absent, no fault."""
 
     @property
     @abstractmethod
@@ -218,6 +223,8 @@ class Px4(Profile):
         )
         self.p_x = [[f"TC_G{i}_X{k}_{a}" for k in range(4)] for a in range(3)]
         self.p_cal_id = f"CAL_GYRO{i}_ID"
+        self.p_cal_rot = f"CAL_GYRO{i}_ROT"
+        self.optional = frozenset({self.p_cal_rot})
         self.p_cal_off = [f"CAL_GYRO{i}_{a}OFF" for a in AXES]
 
     @property
@@ -302,10 +309,23 @@ class Px4(Profile):
         dc = np.clip(temp_c, p[self.p_tmin], p[self.p_tmax]) - tref
         return (evaluate(a, dc) - evaluate(a, d)) @ self._r(p).T * DEG_PER_RAD
 
+    def extra_context(self, p: Mapping[str, float]) -> list[Param]:
+        # CAL_GYROn_ROT: -1 for an internal gyro (SENS_BOARD_ROT applies), else an external gyro's own
+        # rotation (PX4 1.12+; older firmware lacks it, so it is optional)
+        return [] if self.p_cal_rot in self.absent else [Param(self.p_cal_rot, INT32)]
+
     def problem(self, p: Mapping[str, float]) -> str | None:
         why = self.rotation_problem(p)
         if why:
             return why
+        rot = p.get(self.p_cal_rot)
+        if rot is not None and rot >= 0:
+            # an external gyro follows its own rotation, not SENS_BOARD_ROT: a set learnt and written
+            # in the board frame was applied with x and y of the wrong sign, 1957/1379 deg/h left
+            # against 1136/821 uncompensated, status saying "agree" (an integrator's audit)
+            return (f"{self.p_cal_rot} = {rot:g}: an external gyro with its own rotation, which gyrocal does "
+                    "not model (it writes TC_G in the board frame): refused, a set would be applied with "
+                    "the wrong axes or signs (docs/mavlink.md, board rotation)")
         if not p.get(self.p_cal_id):
             return f"{self.p_cal_id} is 0: PX4 does not know this gyro's device id (run a gyro calibration)"
         return None

@@ -166,6 +166,7 @@ class VirtualAutopilot:
             rng = np.random.default_rng([self.seed, 0xCA1])
             for ax in "XYZ":  # a gyro calibration done once at the factory [rad/s]
                 vals[f"CAL_GYRO0_{ax}OFF"] = f32(rng.normal(0.0, 0.002))
+            vals["CAL_GYRO0_ROT"], types["CAL_GYRO0_ROT"] = -1.0, INT32  # internal: SENS_BOARD_ROT applies
         else:
             vals.update({"INS_TCAL1_TMAX": 70.0, "INS_GYR1_CALTEMP": -300.0})
             vals["INS_GYR_CAL"], types["INS_GYR_CAL"] = 1.0, INT8
