@@ -157,8 +157,9 @@ def test_missing_socket_gives_the_one_line_hint(short_dir: Path) -> None:
     path = short_dir / "none.sock"
     with pytest.raises(GyrocalError) as err:
         request(path, {"cmd": "status"})
-    assert str(err.value) == (f"no gyrocal daemon listening on {path}; start it with `gyrocal run` "
-                              "or pass --socket")
+    assert str(err.value) == (f"no gyrocal daemon listening on {path}; is the service running? "
+                              "(systemctl status gyrocal; `gyrocal run --config FILE` by hand), or pass "
+                              "--socket")
 
 
 def test_a_handler_that_hangs_gives_a_timeout_error_not_a_hang(short_dir: Path) -> None:

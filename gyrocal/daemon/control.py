@@ -569,8 +569,11 @@ def request(path: Path | str, obj: dict, timeout: float = 5.0) -> dict:
         try:
             sock.connect(os.fspath(path))
         except (FileNotFoundError, ConnectionRefusedError) as err:
-            raise GyrocalError(f"no gyrocal daemon listening on {path}; start it with `gyrocal run` or "
-                               "pass --socket") from err
+            # "start it with `gyrocal run`" led an operator to run it by hand as root, without --config:
+            # the virtual unit against the real store, root-owned files in it (an operator's audit)
+            raise GyrocalError(f"no gyrocal daemon listening on {path}; is the service running? "
+                               "(systemctl status gyrocal; `gyrocal run --config FILE` by hand), or pass "
+                               "--socket") from err
         except PermissionError as err:
             raise GyrocalError(f"permission denied on {path}; add your user to group gyrocal "
                                "(sudo usermod -aG gyrocal $USER, then log in again) or use sudo") from err
