@@ -434,7 +434,8 @@ class MavlinkLink(UnitRequests, Link):
 
     def _fallback(self, now: float) -> None:
         temp_msg = imu_mod.temp_message(self.profile.name, self.instance)  # type: ignore[union-attr]
-        log.info("mavlink %s: no HIGHRES_IMU; using %s at %.0f Hz", self.url, temp_msg, self.rate_hz)
+        log.info("mavlink %s: no HIGHRES_IMU; using %s, asked for at %.0f Hz (the rate measured is in "
+                 "status)", self.url, temp_msg, self.rate_hz)
         self._source = temp_msg
         self._command(CMD_SET_MESSAGE_INTERVAL, MSG_ID[temp_msg], 1e6 / self.rate_hz)
 
