@@ -452,6 +452,7 @@ def test_a_hello_with_no_rate_is_sized_from_the_samples_once_they_show_it(tmp_pa
     first = eng.session
     eng._feed(_samples(0, 200, 200.0), 1.0)
     assert eng.session is not first and eng.session.rate_hz == pytest.approx(200.0)
+    assert eng.sessions_started == 1  # one switch-on, one session (it counted two)
     assert eng.detector.status()["rate_hz"] == pytest.approx(200.0)
     again = eng.session
     eng._feed(_samples(200, 400, 200.0), 3.0)

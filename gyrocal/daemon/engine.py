@@ -574,7 +574,8 @@ class Engine(CommandsMixin):
         self.session = Session(self.cfg, hello, learner, self.store, self.link.send, now, rate,
                                warm_started_from=None if prior is None else prior.version,
                                caps=caps, same_boot=same_boot(prior, hello) if from_hello else None)
-        self.sessions_started += 1
+        if not resized:  # the same switch-on sized again for its measured rate is no new session (a
+            self.sessions_started += 1  # HELLO stating rate 0 counted two: a serial integrator's audit)
         if old is not None:  # push results the store could not take yet: carried over, not lost
             self.session.unrecorded.extend(old.unrecorded)
             if old.unrecorded and self.session.store_error is None:
