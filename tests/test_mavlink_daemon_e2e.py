@@ -146,7 +146,7 @@ def test_an_autopilot_that_hangs_during_the_first_push_is_calibrated_when_it_ans
     params, st = run_daemon_until_acked(tmp_path, "--silence-after-sets", "5", "--silence-for", "12")
     log = (tmp_path / "run.log").read_text()
     assert "heartbeat lost" in log and "read again when it answers" in log
-    assert "UNKNOWN_TERMS" not in log and st["last_push"]["version"] == 1
+    assert "UNKNOWN_TERMS" not in log and "push v1 ended: acked" in log
 
 
 def test_an_autopilot_whose_imu_gives_no_temperature_is_a_fault_status_shows(tmp_path: Path) -> None:
@@ -185,4 +185,4 @@ def test_an_autopilot_whose_parameter_answers_are_lost_mid_push_is_calibrated_wh
     params, st = run_daemon_until_acked(tmp_path, "--mute-params-after-sets", "5", "--silence-for", "12")
     log = (tmp_path / "run.log").read_text()
     assert "reading again every 5 s" in log and "are read again" in log
-    assert "UNKNOWN_TERMS" not in log and st["last_push"]["version"] == 1
+    assert "UNKNOWN_TERMS" not in log and "push v1 ended: acked" in log
