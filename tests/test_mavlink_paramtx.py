@@ -21,6 +21,10 @@ class Server:
         self.profile = profile
         self.p = {x.name: 0.0 for x in profile.all_params()} | initial
         self.types = profile.types()
+        for q in profile.extra_context(self.p):  # a PX4 1.12+: its gyro internal (CAL_GYRO0_ROT -1)
+            if q.name in profile.optional:
+                self.p.setdefault(q.name, -1.0)
+                self.types[q.name] = q.ptype
         self.inbox: list[object] = []
         self.drop_next = 0
         self.clamp: str | None = None
