@@ -677,6 +677,11 @@ def test_a_set_reported_unasked_that_differs_is_learnt_with_and_said(tmp_path: P
         s.on_message(CoeffReport(0, s.applied.terms_id, zero.tolist()), h.now)
     assert s.applied.version == 0 and not np.any(s.applied.coeffs_dps) and len(s.monitor) == 0
     assert [r for r in caplog.records if "not written by this daemon" in r.getMessage()]
+    # a retry pending from before the change is dropped: it was learnt against the old set, and pushed
+    # again it overwrote the calibration an ArduPilot had just learnt (an integrator's re-check)
+    s._retry = {"version": 1, "names": [], "coeffs": None, "round": 7, "at": h.now}
+    s.on_message(CoeffReport(0, s.applied.terms_id, (zero + 1e-3).tolist()), h.now)
+    assert s._retry is None
 
 
 def test_a_refused_reload_stays_in_the_status_line_until_a_good_one(tmp_path: Path) -> None:

@@ -660,3 +660,24 @@ def test_a_px4_external_gyro_with_its_own_rotation_is_refused(tmp_path: Path) ->
             assert "CAL_GYRO0_ROT = 4" in link.fault and not col.of(Hello)
         finally:
             link.stop()
+
+
+def test_a_retry_of_a_version_is_written_with_the_range_of_its_first_push() -> None:
+    """v2, learnt over 20-43.5 degC, was cut short; its retry, after the temperature had reached 47.1,
+    went out with TMAX 47.1 while its record said 43.5, and no refinement followed: 300-400 deg/h left
+    at 50 degC (an integrator's re-check). A version keeps the range of its first push."""
+    link = MavlinkLink("udpin:127.0.0.1:0", RingBuffer(1 << 10), lambda m: None, state_file=None,
+                       autopilot="ardupilot")
+    link.serial, link.target_system = 42, 1
+    link._hello = Hello(42, "4.5.7", 1, 250)
+    link._send_param = lambda req: None  # type: ignore[method-assign]  # no connection here
+    link._range = [20.0, 43.5]
+    link._start_push(CoeffWrite(2, TEMP_POLY3_ID, Q), 0.0, [])
+    first = link._push_range
+    link._push = link._push_write = None  # cut short
+    link._range = [20.0, 47.1]
+    link._start_push(CoeffWrite(2, TEMP_POLY3_ID, Q), 10.0, [])
+    assert link._push_range == first == (20.0, 43.5)
+    link._push = link._push_write = None
+    link._start_push(CoeffWrite(3, TEMP_POLY3_ID, Q * 1.1), 20.0, [])  # a new version: the range seen
+    assert link._push_range == (20.0, 47.1)

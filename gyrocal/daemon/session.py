@@ -371,6 +371,13 @@ class Session(RecoveryMixin):
             log.warning("unit %s: it now holds v%d where v%d was, not written by this daemon: learning "
                         "and the drift monitor go on with the set it holds", self.hello.serial,
                         applied.version, self.applied.version)
+            if self._retry is not None:
+                # a set learnt before the change and refused then: pushed again, v1 (10 minutes old)
+                # overwrote the calibration an ArduPilot had just learnt, 8-20x worse for a minute (an
+                # integrator's re-check). A new set must now pass validation against the one held
+                log.info("unit %s: v%d is not pushed again: the unit's set changed since", self.hello.serial,
+                         self._retry["version"])
+                self._retry = None
         if self.applied is None and self.caps.reboot_required and applied.version > 0 \
                 and self.reboot_needed is None:
             # a PX4 that booted with TC_G_ENABLE 0 holds a set it applies only after its next reboot,

@@ -102,6 +102,12 @@ class UnitRequests:
             log.info("mavlink %s: v%d is written with its own range, %.1f..%.1f degC", self.url,
                      msg.version, lo, hi)
         self._push_range = (lo, hi)
+        if self._own_range(msg.version) is None and self.tmin_c is None and self.tmax_c is None:
+            # a retry of this version (a push cut short, BUSY) is written with this first range, the one
+            # it was learnt over: written later with the wider range seen since, a v2 learnt over
+            # 20-43.5 degC went to TMAX 47.1, its record still saying 43.5, and no refinement followed
+            # while 300-400 deg/h were left at 50 degC (an integrator's re-check)
+            self.state.keep_range(self.serial, msg.version, lo, hi)
         self._push_write = msg
         self._reader, self._check_read = None, False  # a running read (an idle check) gives way
         q = np.zeros((3, 4))
