@@ -192,11 +192,6 @@ class Session(RecoveryMixin):
     [s] of unit time (the rank unchanged; with temperature terms, the still samples' temperature also
     within +-STEADY_BAND_C [degC]) and the unit holds no set beyond a constant (learner.py, "A cold
     start that stops learning"): a heated IMU, and a unit mounted at one pose, were never calibrated."""
-    BIAS_KEEP_RATIO = 2.0
-    """In the bias stage, an axis whose bias has moved by no more than this many times the new bias's
-    own predicted error keeps the held bias, and the axes that gain are pushed: an axis whose bias
-    repeats from one switch-on to the next held back the other two, 1130 and 2874 deg/h off, for good
-    (a serial integrator's unit whose y bias repeats)."""
     BIAS_MIN_CUT = 3.0
     """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
     times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
@@ -249,6 +244,7 @@ class Session(RecoveryMixin):
         self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
         self._gate_result: refine.GateResult | None = None
         self._keep_held: np.ndarray | None = None  # (3,) bool: bias-stage axes that keep the held bias
+        self._bias_partial = False  # a bias stage pushed on some axes only: the others when they gain
         self._refusal_logged: set[int] = set()
         self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
         self.prediction: dict[str, Any] = {}
@@ -645,14 +641,16 @@ class Session(RecoveryMixin):
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
                                             self.cfg.validation["min_improvement"])
         self._keep_held = None
-        if bias and not g.ok and self._applied_coeffs() is not None and np.all(np.isfinite(left)):
-            with np.errstate(invalid="ignore"):
-                same = ~g.gains & (np.nan_to_num(removes, nan=np.inf) <= self.BIAS_KEEP_RATIO * left)
-            if np.any(g.gains) and np.all(g.gains | same):
-                self._keep_held = same
-                return True, (f"bias stage on axis {_axes(g.gains)}; axis {_axes(same)} keeps the held bias "
-                              f"(moved {_dph(removes)} deg/h, within {self.BIAS_KEEP_RATIO:g}x the new "
-                              f"bias's error {_dph(left)} deg/h)")
+        if bias and not g.ok and self._applied_coeffs() is not None and np.all(np.isfinite(left)) \
+                and np.any(g.gains):
+            # the axes that gain get the new bias now; the others keep the held one until theirs gains
+            # too (another bias-stage push). All axes had to gain at once: an axis whose bias repeats
+            # from one switch-on to the next held the other two 1130 and 2874 deg/h off for good (a
+            # serial integrator's unit)
+            self._keep_held = ~g.gains
+            return True, (f"bias stage on axis {_axes(g.gains)}; axis {_axes(~g.gains)} keeps the held bias "
+                          f"for now (moved {_dph(removes)} deg/h, the new bias's error {_dph(left)} deg/h: "
+                          f"pushed once it moves {cut:g}x its error)")
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
                f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
@@ -894,9 +892,10 @@ class Session(RecoveryMixin):
         self._validate(now)
 
     def _bias_stage_due(self) -> bool:
-        """A warm start's bias-only set is due: first still second seen, not pushed yet this session."""
+        """A warm start's bias-only set is due: first still second seen, not pushed yet this session
+        (or pushed on some axes only, ``_bias_partial``: the others when theirs gains)."""
         return (bool(self.cfg.push.get("bias_first", True)) and not self._bias_pushed
-                and self.learner.bias_only and self.validated_rms is None
+                and self.learner.bias_only and (self.validated_rms is None or self._bias_partial)
                 and self.learner.samples >= self.BIAS_MIN_S * self.rate_hz and len(self.monitor) >= 2)
 
     def _push_bias(self, now: float) -> None:
@@ -906,8 +905,9 @@ class Session(RecoveryMixin):
         if not ok:
             self.reason = "bias stage: " + why
             return
-        self._bias_pushed = True
-        if self._keep_held is not None:
+        self._bias_partial = self._keep_held is not None
+        self._bias_pushed = not self._bias_partial
+        if self._bias_partial:
             log.info("unit %s: %s", self.hello.serial, why)
         self._validate(now, self.monitor, stage="bias")
 
@@ -1048,14 +1048,17 @@ class Session(RecoveryMixin):
             # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit)
             nan = _xyz_dph(np.full(3, np.nan))
             self._push_prediction.update(left_sphere=nan, bound=nan, constant_only=True)
-        if kept:  # those axes hold the held set's rows: its own prediction, where its record has one
+        if kept:  # those axes hold the held set's rows: its own prediction, where its record has one,
+            # with the bias movement left in place (a kept axis's bound was half its truth: an audit)
             held_left = self._held_info()[0]
             mask = np.array([a in kept for a in "xyz"])
+            moved = np.nan_to_num(np.asarray(self.prediction.get("removes", np.zeros(3)), dtype=float))
             for k in PREDICTED_KEYS:
                 if k in self._push_prediction:
                     v = np.array([np.nan if x is None else x / DPH
                                   for x in self._push_prediction[k].values()], dtype=float)
-                    v[mask] = 0.0 if k == "removes" else np.nan if held_left is None else held_left[mask]
+                    v[mask] = 0.0 if k == "removes" else np.nan if held_left is None else \
+                        np.hypot(held_left, moved)[mask]
                     self._push_prediction[k] = _xyz_dph(v)
             self._push_prediction["kept_axes"] = kept
         try:
