@@ -75,6 +75,11 @@ def settled(rate_c_per_s: float, peak_c_per_s: float) -> bool:
     """True when the temperature rate [degC/s] says the warm-up has (nearly) settled."""
     r = abs(rate_c_per_s)
     return r < SETTLED_C_PER_S and r <= SETTLED_FRACTION * abs(peak_c_per_s)
+KEPT_GAIN = 3.0
+"""On an axis whose held bias was kept from an older set (module docstring of ``gate``), a refinement
+gains when it leaves 1/KEPT_GAIN of the held set's predicted drift there: a kept y/z whose bias had
+moved 21-25 deg/h was never refined, a full set leaving 5-6 deg/h falling short of 1/20 of the 21-26
+it removed (a serial integrator's re-check)."""
 NOT_WORSE_RATIO = 2.0
 """How much larger than the held set's a refinement's predicted drift left may be on an axis that does
 not gain (see the module docstring)."""
@@ -101,9 +106,12 @@ class GateResult:
 
 def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
          held_left: np.ndarray | None = None, widened: bool = False,
-         floor: np.ndarray | None = None, min_improvement: float = 0.2) -> GateResult:
+         floor: np.ndarray | None = None, min_improvement: float = 0.2,
+         kept: np.ndarray | None = None) -> GateResult:
     """The rule of the module docstring; all figures per axis in deg/s (``floor``: None, or the
-    wander's drift (3,) that no set removes)."""
+    wander's drift (3,) that no set removes). ``kept`` (3,) bool: axes on which the held set kept an
+    older set's bias (a bias stage, ``kept_axes``): such an axis also gains when the new set's drift
+    left is at most 1/KEPT_GAIN of the held set's there, which holds the bias's move."""
     left = np.asarray(left, dtype=float)
     removes = np.nan_to_num(np.asarray(removes, dtype=float), nan=0.0)
     held = np.zeros(3) if held_left is None else np.nan_to_num(np.asarray(held_left, dtype=float))
@@ -114,6 +122,8 @@ def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
             f = np.nan_to_num(np.asarray(floor, dtype=float), nan=0.0)
             gains |= (f > 0) & (left <= WANDER_LEFT_SHARE * f) \
                 & (np.hypot(left, f) <= (1.0 - min_improvement) * np.hypot(removes, f))
+        if kept is not None:
+            gains |= np.asarray(kept, dtype=bool) & (held > 0) & (left * KEPT_GAIN <= held)
         not_worse = gains | (left <= NOT_WORSE_RATIO * np.maximum(held, removes))
     if not np.any(held > 0):  # a held set the daemon knows nothing about: every axis must gain
         ok = finite and bool(np.all(gains))

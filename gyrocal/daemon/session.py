@@ -639,7 +639,8 @@ class Session(RecoveryMixin):
         wide = wide or self._held_has_north
         floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
-                                            self.cfg.validation["min_improvement"])
+                                            self.cfg.validation["min_improvement"],
+                                            None if bias else self._held_kept())
         self._keep_held = None
         if bias and not g.ok and self._applied_coeffs() is not None and np.all(np.isfinite(left)) \
                 and np.any(g.gains):
@@ -696,6 +697,19 @@ class Session(RecoveryMixin):
             held = self._sphere_phi({"temp": held_t}) @ a.T
             worst = np.fmax(worst, np.sqrt(np.mean((at_t - held) ** 2, axis=0)))
         return refine.edge_costs(worst, drift, cut)
+
+    def _held_kept(self) -> np.ndarray | None:
+        """(3,) bool: the axes on which the held set kept an older set's bias (its record's
+        ``kept_axes``), or None."""
+        a = self.applied
+        if a is None or a.version <= 0:
+            return None
+        try:
+            rec = self.store.get(self.hello.serial, a.version)
+        except Exception:  # the store is advisory here
+            return None
+        kept = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("kept_axes") if rec else None
+        return np.array([ax in kept for ax in "xyz"]) if kept else None
 
     def _held_info(self) -> tuple[np.ndarray | None, tuple[float, float] | None]:
         """The held set's predicted drift left [deg/s] (3,) and temperature range [degC] as its store
