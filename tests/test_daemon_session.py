@@ -728,3 +728,22 @@ def test_a_flapping_link_is_summed_up_once_a_minute(tmp_path: Path,
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 3 + 3 and sum("times in the last 60 s" in w for w in warnings) == 3
     assert len([r for r in caplog.records if r.levelno == logging.INFO]) == 3  # the first 3 returns
+
+
+def test_a_new_cause_of_a_down_link_is_said_and_shown(tmp_path: Path,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """After a replug, a second daemon took the port: the service's last line was the unplug's "No
+    such file", and status said only "link ... is down" (a serial integrator's re-check)."""
+    eng = _engine_with_stub_link(tmp_path)
+    eng.link.stats = lambda: {"connected": False, "target": "/dev/x"}
+    gone = "serial port '/dev/x' cannot be opened ([Errno 2] No such file or directory); check ..."
+    held = "serial port '/dev/x' cannot be opened (Could not exclusively lock port /dev/x); another process"
+    with caplog.at_level(logging.WARNING, logger="gyrocal.engine"):
+        for k in range(3):
+            eng._on_link_event("reconnecting", f"{gone}; next try in {2.0 ** k:.1f} s", float(k))
+        for k in range(3):
+            eng._on_link_event("reconnecting", f"{held}; next try in 1.0 s", 10.0 + k)
+    said = [r.getMessage() for r in caplog.records if "waiting for the unit" in r.getMessage()]
+    assert len(said) == 2 and "No such file" in said[0] and "exclusively lock" in said[1]
+    eng._publish(20.0)
+    assert eng.status["state"] == "WAIT_UNIT" and "exclusively lock" in eng.status["reason"]

@@ -132,6 +132,8 @@ class Engine(CommandsMixin):
         self._link_up_at: float | None = None  # when the link last came up [s, the engine's clock]
         self._flaps: deque[float] = deque()  # times of the link's losses in the last FLAP_WINDOW_S
         self._ups_since_said = 0  # link_up events since _say_link_errors last ran
+        self._reconnect_why = ""  # the last reconnect failure's cause, its numbers masked
+        self._reconnect_detail: str | None = None  # the last reconnect failure, while the link is down
         self._flap_said_at = -1e9
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
@@ -527,11 +529,16 @@ class Engine(CommandsMixin):
     """More link losses than this in FLAP_WINDOW_S [s]: one WARNING a minute, the rest at DEBUG."""
 
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
-        if name == "reconnecting":  # every back-off round: one line when the state changes only
-            first = self._link_state != "reconnecting"
+        if name == "reconnecting":  # every back-off round: one line when the state or its cause changes
+            why = _COUNTS.sub("#", detail.split("; next try in")[0])
+            first = self._link_state != "reconnecting" or why != self._reconnect_why
+            # a cause that changes is said too: after a replug, a second daemon held the port, and the
+            # service's last line was still the unplug's "No such file" (a serial integrator's re-check)
             log.log(logging.WARNING if first else logging.DEBUG, "waiting for the unit: %s", detail)
-            self._link_state = name
+            self._link_state, self._reconnect_why = name, why
+            self._reconnect_detail = detail.split("; next try in")[0]
             return
+        self._reconnect_detail = None
         level = logging.INFO if name == "link_up" else logging.WARNING
         if name == "link_lost":
             self._flaps.append(now)
@@ -776,6 +783,7 @@ class Engine(CommandsMixin):
             status["session_state"] = status["state"]
             status["state"] = "WAIT_UNIT"
             status["reason"] = (f"waiting for the unit: link to {link_stats.get('target', '?')} is down"
+                                + (f" ({self._reconnect_detail})" if self._reconnect_detail else "")
                                 if not connected else
                                 f"waiting for the unit: {link_stats.get('target', '?')} is open, "
                                 "nothing heard yet")
