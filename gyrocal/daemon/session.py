@@ -1346,9 +1346,19 @@ class Session(RecoveryMixin):
             "unit_caps": self.caps.as_dict(),
             "reboot_needed": self.reboot_needed,
             "host_remainder": self.host_remainder,
-            "predicted_drift_dph": {k: (_xyz_dph(v) if k in PREDICTED_KEYS else v)
-                                    for k, v in self.prediction.items() if k != "gate"},
+            "predicted_drift_dph": self._status_prediction(),
         }
+
+    def _status_prediction(self) -> dict[str, Any]:
+        """The live prediction for status: a constant alone (a cold start that stopped learning) holds
+        where the unit was seen, so no sphere figure is given, as in its push record (status said
+        1.02 deg/h over the sphere where a vehicle unit's drift was 8.4/21.7/18.5: an audit)."""
+        out = {k: (_xyz_dph(v) if k in PREDICTED_KEYS else v)
+               for k, v in self.prediction.items() if k != "gate"}
+        if self.learner.cold_ready and out:
+            nan = _xyz_dph(np.full(3, np.nan))
+            out.update(left_sphere=nan, bound=nan, constant_only=True)
+        return out
 
 
 def _range(r: tuple[float, float] | None) -> str:
