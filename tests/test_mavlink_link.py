@@ -618,6 +618,7 @@ def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp
             assert wait_for(lambda: col.of(CoeffNak), 10)
             assert col.of(CoeffNak)[0].reason == NakReason.BUSY and not col.of(CoeffAck)
             assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 2.0)
+            assert "learning its own temperature calibration" in link.stats()["hold"]  # status's reason
         finally:
             link.stop()
 

@@ -799,6 +799,8 @@ class Engine(CommandsMixin):
             status["state"] = "UNIT_SILENT"
             status["reason"] = (f"unit silent: no sample for {age:.0f} s" if age is not None
                                 else "unit silent: connected, but no sample yet")
+        elif self.session is not None and link_stats.get("hold"):  # an autopilot's own calibration run
+            status["reason"] = f"{link_stats['hold']}; {status.get('reason', '')}"
         elif self.session is not None and (link_stats.get("fault") or link_stats.get("read_fault")):
             # a fault the link found after the HELLO (an autopilot whose IMU gives no temperature, one
             # that stopped answering parameter reads): the session's own reason ("only 0 of 500

@@ -256,6 +256,9 @@ class MavlinkLink(UnitRequests, Link):
             "autopilot": self.profile.name if self.profile else None,
             "fault": self.fault,
             "read_fault": self._read_fault,
+            "hold": (f"the autopilot is learning its own temperature calibration "
+                     f"({self.profile.enable.name} = 2): nothing is pushed until it ends"
+                     if self.profile is not None and self.profile.learning(self._params) else None),
             "imu_source": self._source,
             "reboot_required": self.reboot_required,
             "board_rotation": self.board_rotation,
