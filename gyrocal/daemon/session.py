@@ -1066,7 +1066,10 @@ class Session(RecoveryMixin):
             # with the bias movement left in place (a kept axis's bound was half its truth: an audit)
             held_left = self._held_info()[0]
             mask = np.array([a in kept for a in "xyz"])
-            moved = np.nan_to_num(np.asarray(self.prediction.get("removes", np.zeros(3)), dtype=float))
+            # (a bias stage's kept axis: the bias may have moved since; a refinement keeps the rows the
+            # new set would have worsened, whose own figure stands)
+            moved = np.nan_to_num(np.asarray(self.prediction.get("removes", np.zeros(3)), dtype=float)) \
+                if stage == "bias" else np.zeros(3)
             for k in PREDICTED_KEYS:
                 if k in self._push_prediction:
                     v = np.array([np.nan if x is None else x / DPH
