@@ -536,7 +536,7 @@ class Engine(CommandsMixin):
             # service's last line was still the unplug's "No such file" (a serial integrator's re-check)
             log.log(logging.WARNING if first else logging.DEBUG, "waiting for the unit: %s", detail)
             self._link_state, self._reconnect_why = name, why
-            self._reconnect_detail = detail.split("; next try in")[0]
+            self._reconnect_detail = detail.split("; ")[0]  # the cause, without the fix the log gives
             return
         self._reconnect_detail = None
         level = logging.INFO if name == "link_up" else logging.WARNING
