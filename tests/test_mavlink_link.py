@@ -619,6 +619,17 @@ def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp
             assert col.of(CoeffNak)[0].reason == NakReason.BUSY and not col.of(CoeffAck)
             assert param_becomes(tmp_path, "INS_TCAL1_ENABLE", 2.0)
             assert "learning its own temperature calibration" in link.stats()["hold"]  # status's reason
+            # the run ends (ArduPilot sets 1): its set stands for the boot. Replaced within the second,
+            # an ArduPilot's 8/6/3 deg/h became gyrocal's 22/15/17 (an integrator's re-check)
+            from gyrocal.mavlink.paramtx import ParamSet, encode_param
+
+            enable = link.profile.enable
+            link._send_param(ParamSet(enable.name, encode_param(1.0, enable.ptype, link.profile.bytewise),
+                                      enable.ptype))
+            assert wait_for(lambda: "ended its own" in (link.stats()["hold"] or ""), 10)
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
+            assert wait_for(lambda: len(col.of(CoeffNak)) == 2, 10)
+            assert col.of(CoeffNak)[1].reason == NakReason.BUSY and not col.of(CoeffAck)
         finally:
             link.stop()
 

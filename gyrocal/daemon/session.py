@@ -245,6 +245,7 @@ class Session(RecoveryMixin):
         self._gate_result: refine.GateResult | None = None
         self._keep_held: np.ndarray | None = None  # (3,) bool: bias-stage axes that keep the held bias
         self._bias_partial = False  # a bias stage pushed on some axes only: the others when they gain
+        self._bias_said = ""  # the last partial bias stage's line, said once
         self._refusal_logged: set[int] = set()
         self._context: dict[str, float] = {}  # latest non-gravity inputs (temp, t_on, ...)
         self.prediction: dict[str, Any] = {}
@@ -633,6 +634,13 @@ class Session(RecoveryMixin):
         settled = refine.settled(self._trate.value, self._peak_trate)
         edge = settled and self._edge_costs(held_range, cut)
         wide = refine.widened(held_range, self.temp_seen, settled, edge)
+        if wide and held_left is not None:
+            # beyond its own range the held set leaves what it leaves there, not its recorded figure
+            # (4.5 deg/h credited where an ArduPilot clamping above TMAX was left 600 deg/h off, and a
+            # refinement leaving 50 held back for good: an integrator's re-check)
+            edge_left = self._edge_left(held_range)
+            if edge_left is not None:
+                held_left = np.fmax(held_left, edge_left)
         # a set pushed before north was found holds the Earth's rate along north as drift: like a
         # widened temperature range, the next set need not cut 1/min_cut of what it changes, only be
         # no worse on any axis (and pass validation)
@@ -675,28 +683,36 @@ class Session(RecoveryMixin):
 
     def _edge_costs(self, held_range: tuple[float, float] | None, cut: float) -> bool:
         """Whether the held set leaves, at an end of the range seen beyond its own, more than 1/``cut``
-        of the unit's drift on some axis (refine.edge_costs).
+        of the unit's drift on some axis (refine.edge_costs). The unit's drift is the learnt set's RMS
+        over the poses seen, uncompensated."""
+        worst = self._edge_left(held_range)
+        c = self.learner.coefficients
+        poses = self.pose_log.array(len(self.names))
+        if worst is None or not len(poses):
+            return False
+        drift = np.sqrt(np.mean((poses @ c.T) ** 2, axis=0))
+        return refine.edge_costs(worst, drift, cut)
 
-        The drift left there is the learnt set minus the held one at that temperature (RMS over the
-        sphere of gravity directions, the other inputs at their latest values); a unit that clamps
-        its temperature into TMIN..TMAX (capabilities) evaluates the held set at the nearer limit.
-        The unit's drift is the learnt set's RMS over the poses seen, uncompensated."""
+    def _edge_left(self, held_range: tuple[float, float] | None) -> np.ndarray | None:
+        """The drift [deg/s] (3,) the held set leaves at the worse end of the range seen beyond its own,
+        or None (no such end, or nothing to judge it by): the learnt set minus the held one at that
+        temperature (RMS over the sphere of gravity directions, the other inputs at their latest
+        values); a unit that clamps its temperature into TMIN..TMAX (capabilities) evaluates the held
+        set at the nearer limit."""
         temps = refine.edge_temps(held_range, self.temp_seen)
         a = self._applied_coeffs()
         if not temps or held_range is None or a is None or "temp" not in self._context:
-            return False
+            return None
         c = self.learner.coefficients
-        poses = self.pose_log.array(len(self.names))
-        if not len(poses) or not np.all(np.isfinite(c)):
-            return False
-        drift = np.sqrt(np.mean((poses @ c.T) ** 2, axis=0))
+        if not np.all(np.isfinite(c)):
+            return None
         worst = np.zeros(3)
         for t in temps:
             held_t = min(max(t, held_range[0]), held_range[1]) if self.caps.clamps_temperature else t
             at_t = self._sphere_phi({"temp": t}) @ c.T
             held = self._sphere_phi({"temp": held_t}) @ a.T
             worst = np.fmax(worst, np.sqrt(np.mean((at_t - held) ** 2, axis=0)))
-        return refine.edge_costs(worst, drift, cut)
+        return worst
 
     def _held_kept(self) -> np.ndarray | None:
         """(3,) bool: the axes on which the held set kept an older set's bias (its record's
@@ -910,7 +926,10 @@ class Session(RecoveryMixin):
         (or pushed on some axes only, ``_bias_partial``: the others when theirs gains)."""
         return (bool(self.cfg.push.get("bias_first", True)) and not self._bias_pushed
                 and self.learner.bias_only and (self.validated_rms is None or self._bias_partial)
-                and self.learner.samples >= self.BIAS_MIN_S * self.rate_hz and len(self.monitor) >= 2)
+                and self.learner.samples >= self.BIAS_MIN_S * self.rate_hz and len(self.monitor) >= 2
+                # a partial stage whose validation failed waits as a full set does (it was tried again at
+                # every tick, 8 log lines a second: a serial integrator's re-check)
+                and (not self._bias_partial or self.learner.samples >= self._next_validation_at))
 
     def _push_bias(self, now: float) -> None:
         """Stage 1 after a switch-on: the stored set with this switch-on's bias, validated on the blocks
@@ -921,7 +940,8 @@ class Session(RecoveryMixin):
             return
         self._bias_partial = self._keep_held is not None
         self._bias_pushed = not self._bias_partial
-        if self._bias_partial:
+        if self._bias_partial and why != self._bias_said:
+            self._bias_said = why
             log.info("unit %s: %s", self.hello.serial, why)
         self._validate(now, self.monitor, stage="bias")
 

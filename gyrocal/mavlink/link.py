@@ -258,7 +258,9 @@ class MavlinkLink(UnitRequests, Link):
             "read_fault": self._read_fault,
             "hold": (f"the autopilot is learning its own temperature calibration "
                      f"({self.profile.enable.name} = 2): nothing is pushed until it ends"
-                     if self.profile is not None and self.profile.learning(self._params) else None),
+                     if self.profile is not None and self.profile.learning(self._params) else
+                     "the autopilot ended its own temperature calibration run this boot: its set stands "
+                     "until the next boot" if self._own_calibration else None),
             "imu_source": self._source,
             "reboot_required": self.reboot_required,
             "board_rotation": self.board_rotation,
@@ -300,6 +302,7 @@ class MavlinkLink(UnitRequests, Link):
         self._restore: ParamRestore | None = None  # the set held before a push a reboot cut short
         self._read_again_at: float | None = None  # monotonic s: a failed read is tried again from then
         self._read_fault: str | None = None  # why the last read after the HELLO failed, until one succeeds
+        self._own_calibration = False  # the autopilot ended its own calibration run this boot
         self._last_report: CoeffReport | None = None  # the set last reported or acked, this boot
         self._report_wanted = False
         self._source: str | None = None

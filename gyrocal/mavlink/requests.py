@@ -142,6 +142,9 @@ class UnitRequests:
             return (f"the autopilot is learning its own temperature calibration ({self.profile.enable.name} "
                     "= 2): gyrocal writes nothing until it ends (it sets 1), or set 0 to let gyrocal "
                     "calibrate", NakReason.BUSY)
+        if self._own_calibration:
+            return ("the autopilot ended its own temperature calibration run this boot: its set stands "
+                    "until the next boot", NakReason.BUSY)
         if self._read_fault is not None or self._read_again_at is not None:
             return (f"{self._read_fault or 'the autopilot was silent'}; its parameters are read again first",
                     NakReason.BUSY)
@@ -346,6 +349,14 @@ class UnitRequests:
         if self._read_fault is not None:
             log.info("mavlink %s: the compensation parameters are read again", self.url)
             self._read_fault = None
+        if self.profile.learning(self._params) and self.profile.is_enabled(reader.values):
+            # the autopilot's own calibration run has ended (ArduPilot sets 1 when it is done): that
+            # set is what its user ran the learning for, and it stands until the next boot. Replaced
+            # within the second, an ArduPilot's 8/6/3 deg/h became gyrocal's 22/15/17, the learning
+            # lost (an integrator's re-check)
+            self._own_calibration = True
+            log.warning("mavlink %s: the autopilot ended its own temperature calibration run: its set "
+                        "stands until its next boot (nothing is pushed over it)", self.url)
         self._params = dict(reader.values)
         self._adj = None
         if self._boot_params is None:
