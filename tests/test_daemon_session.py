@@ -158,7 +158,8 @@ def test_a_unit_mounted_at_one_pose_with_no_stored_set_gets_its_bias(tmp_path: P
     # good at the pose seen, unknown elsewhere: no sphere figure (it said ~1 deg/h where the unit's
     # drift over the sphere was 8.7/22.7/17.4: a serial integrator's vehicle unit)
     pred = rec.stats["predicted_drift_dph"]
-    assert pred["constant_only"] and pred["left_sphere"] == pred["bound"] == {"x": None, "y": None, "z": None}
+    none = {"x": None, "y": None, "z": None}
+    assert pred["constant_only"] and pred["left_sphere"] == pred["bound"] == pred["expected"] == none
     live = s.status()["predicted_drift_dph"]  # status's own figure says the same
     assert live["constant_only"] and live["bound"] == {"x": None, "y": None, "z": None}
     after = h.unit.status()["drift_rms_compensated_dps"]

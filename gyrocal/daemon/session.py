@@ -1081,7 +1081,7 @@ class Session(RecoveryMixin):
             # good where the unit was seen, unknown elsewhere. Its sphere figure said 1.02 deg/h where
             # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit)
             nan = _xyz_dph(np.full(3, np.nan))
-            self._push_prediction.update(left_sphere=nan, bound=nan, constant_only=True)
+            self._push_prediction.update(left_sphere=nan, bound=nan, expected=nan, constant_only=True)
         if kept:  # those axes hold the held set's rows: its own prediction, where its record has one,
             # with the bias movement left in place (a kept axis's bound was half its truth: an audit)
             held_left = self._held_info()[0]
@@ -1380,7 +1380,7 @@ class Session(RecoveryMixin):
                for k, v in self.prediction.items() if k != "gate"}
         if self.learner.cold_ready and out:
             nan = _xyz_dph(np.full(3, np.nan))
-            out.update(left_sphere=nan, bound=nan, constant_only=True)
+            out.update(left_sphere=nan, bound=nan, expected=nan, constant_only=True)
         return out
 
 
