@@ -750,3 +750,10 @@ def test_a_new_cause_of_a_down_link_is_said_and_shown(tmp_path: Path,
     assert len(said) == 2 and "No such file" in said[0] and "exclusively lock" in said[1]
     eng._publish(20.0)
     assert eng.status["state"] == "WAIT_UNIT" and "exclusively lock" in eng.status["reason"]
+    # what the unit held is as last read: another host may write it meanwhile (a second daemon did)
+    from gyrocal.protocol.messages import Hello
+
+    eng._on_message(Hello(77, "1.0", 1, 200), 21.0)
+    eng.session.agreement = {"agree": True, "note": "the unit holds v1, as the store says"}
+    eng._publish(22.0)
+    assert eng.status["unit_set"]["stale"] and "when last read" in eng.status["unit_set"]["note"]

@@ -779,6 +779,12 @@ class Engine(CommandsMixin):
             # an autopilot's link withholds the samples while it rewrites the compensation (they would
             # mix two sets); it hears the autopilot, and a silent one fails the push (heartbeat lost)
             silent = False
+        if not connected and isinstance(status.get("unit_set"), dict) and status["unit_set"].get("note"):
+            # what the unit held when it was last read: while the link is down another host may write
+            # it (a second daemon that took the port pushed its own v2, and status still said "holds
+            # v1, as the store says": a serial integrator's re-check)
+            status["unit_set"] = {**status["unit_set"], "note": status["unit_set"]["note"]
+                                  + " (when last read: the link is down now)", "stale": True}
         if not connected or (age is None and self.session is None and not link_stats.get("frames")):
             status["session_state"] = status["state"]
             status["state"] = "WAIT_UNIT"
