@@ -679,6 +679,7 @@ def test_a_set_reported_unasked_that_differs_is_learnt_with_and_said(tmp_path: P
     with caplog.at_level(logging.WARNING):
         s.on_message(CoeffReport(0, s.applied.terms_id, zero.tolist()), h.now)
     assert s.applied.version == 0 and not np.any(s.applied.coeffs_dps) and len(s.monitor) == 0
+    assert s.reason == "monitoring v0, which replaced v1 outside gyrocal", s.reason
     assert [r for r in caplog.records if "not written by this daemon" in r.getMessage()]
     # a retry pending from before the change is dropped: it was learnt against the old set, and pushed
     # again it overwrote the calibration an ArduPilot had just learnt (an integrator's re-check)

@@ -368,6 +368,9 @@ class Session(RecoveryMixin):
             log.warning("unit %s: it now holds v%d where v%d was, not written by this daemon: learning "
                         "and the drift monitor go on with the set it holds", self.hello.serial,
                         applied.version, self.applied.version)
+            if self.state is State.MONITORING:  # it said "monitoring v2" while the unit held v0
+                self.reason = (f"monitoring v{applied.version}, which replaced v{self.applied.version} "
+                               "outside gyrocal")
             if self._retry is not None:
                 # a set learnt before the change and refused then: pushed again, v1 (10 minutes old)
                 # overwrote the calibration an ArduPilot had just learnt, 8-20x worse for a minute (an
