@@ -365,9 +365,10 @@ class Session(RecoveryMixin):
             # a ground station wrote an autopilot's compensation (an integrator's audit: the daemon
             # learnt a curve doubled by the set it assumed and pushed one worse than none)
             self.monitor.clear()
-            log.warning("unit %s: it now holds v%d where v%d was, not written by this daemon: learning "
-                        "and the drift monitor go on with the set it holds", self.hello.serial,
-                        applied.version, self.applied.version)
+            now_holds = f"{'another ' if applied.version == self.applied.version else ''}v{applied.version}"
+            log.warning("unit %s: it now holds %s where v%d was, not written by this daemon: learning "
+                        "and the drift monitor go on with the set it holds", self.hello.serial, now_holds,
+                        self.applied.version)
             if self.state is State.MONITORING:  # it said "monitoring v2" while the unit held v0
                 self.reason = (f"monitoring v{applied.version}, which replaced v{self.applied.version} "
                                "outside gyrocal")

@@ -409,9 +409,11 @@ class UnitRequests:
             # raw rate with the set it last read, learnt a curve doubled by it and pushed a set worse
             # than none (an integrator's audit: 1607 deg/h left against 1255 uncompensated). The set
             # the autopilot holds now is reported unasked, as at a read-back
-            log.warning("mavlink %s: the autopilot's compensation changed outside gyrocal (a ground "
-                        "station?): it held v%d, now %s", self.url, self._last_report.version,
-                        f"v{rep.version}" if rep.version else "a set gyrocal did not write (v0)")
+            who = "its own calibration run" if self._own_calibration else "a ground station?"
+            log.log(logging.INFO if self._own_calibration else logging.WARNING,  # that one is said already
+                    "mavlink %s: the autopilot's compensation changed outside gyrocal (%s): it held v%d, now "
+                    "%s", self.url, who, self._last_report.version,
+                    f"v{rep.version}" if rep.version else "a set gyrocal did not write (v0)")
             self._last_report = rep
             out.append(rep)
         self._check_rotation(out)
