@@ -319,7 +319,7 @@ def test_no_drift_alarm_beyond_the_held_set_s_range_where_a_refinement_is_due(tm
 
     s.validated_rms = np.full(3, 0.001)
     monkeypatch.setattr(s, "monitor", Monitor())
-    monkeypatch.setattr(s, "_held_info", lambda: (np.full(3, 0.001), (20.0, 35.0)))
+    monkeypatch.setattr(s, "_held_info", lambda: (np.full(3, 0.001), (20.0, 35.0), None))
     s._context["temp"] = 41.0
     s._check_alarm()
     assert not s.alarm and s.alarm_beyond_range

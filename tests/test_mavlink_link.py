@@ -197,6 +197,16 @@ def push_into_a_reboot(link: MavlinkLink, col: Collector) -> None:
     assert col.of(Hello)[1].boot_count == 2
 
 
+def push_v5_over_a_held_v4(link: MavlinkLink, col: Collector) -> None:
+    """v4 pushed and acked, then v5 pushed into a fault that cuts it: NAKed."""
+    assert wait_for(lambda: col.of(Hello), 15)
+    assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+    link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
+    assert wait_for(lambda: col.of(CoeffAck), 15)
+    link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
+    assert wait_for(lambda: col.of(CoeffNak), 20)
+
+
 def test_a_reboot_mid_push_naks_and_leaves_no_partial_set(tmp_path: Path) -> None:
     with sim("ardupilot", tmp_path, "--reboot-after-sets", "6") as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
@@ -372,12 +382,7 @@ def test_a_push_cut_by_a_reboot_puts_back_the_set_held_before(tmp_path: Path) ->
     with sim("px4", tmp_path, "--reboot-after-sets", "23") as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", param_timeout_s=0.5)
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
-            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
-            assert wait_for(lambda: col.of(CoeffAck), 15)
-            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
-            assert wait_for(lambda: col.of(CoeffNak), 20)
+            push_v5_over_a_held_v4(link, col)
             assert wait_for(lambda: len(col.of(Hello)) == 2, 20)
             assert param_becomes(tmp_path, "TC_G_ENABLE", 1.0)
             link.send(CoeffRead())
@@ -557,12 +562,7 @@ def test_a_push_cut_by_a_hang_puts_back_the_set_held_before_when_the_autopilot_a
     with sim("ardupilot", tmp_path, "--silence-after-sets", "23", "--silence-for", "5") as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot", param_timeout_s=0.5)
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
-            link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
-            assert wait_for(lambda: col.of(CoeffAck), 15)
-            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
-            assert wait_for(lambda: col.of(CoeffNak), 20)
+            push_v5_over_a_held_v4(link, col)
             assert col.of(CoeffNak)[0].reason == NakReason.BUSY
             link.send(CoeffRead())
             assert wait_for(lambda: col.of(CoeffReport), 20)

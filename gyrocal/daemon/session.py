@@ -175,6 +175,8 @@ standard errors, paired per block (one-sided p about 0.001 for independent block
 rest are alike, so it is kept strict)."""
 PREDICTED_KEYS = ("left", "expected", "bound", "left_poses", "left_sphere", "removes")
 """The per-axis figures [deg/s] of a prediction (learner.py), shown and recorded in deg/h."""
+HeldInfo = tuple[np.ndarray | None, tuple[float, float] | None, np.ndarray | None]
+"""The held set's record: predicted drift left [deg/s] (3,), temperature range [degC], kept axes."""
 
 
 class Session(RecoveryMixin):
@@ -241,7 +243,7 @@ class Session(RecoveryMixin):
         # the temperature range [degC] of this session's still samples (None: the model has no temp)
         self._has_temp = "temp" in self.spec.atoms
         self.temp_seen: tuple[float, float] | None = None
-        self._held_cache: dict[int, tuple[np.ndarray | None, tuple[float, float] | None]] = {}
+        self._held_cache: dict[int, HeldInfo] = {}
         self._gate_result: refine.GateResult | None = None
         self._keep_held: np.ndarray | None = None  # (3,) bool: bias-stage axes that keep the held bias
         self._bias_partial = False  # a bias stage pushed on some axes only: the others when they gain
@@ -634,7 +636,7 @@ class Session(RecoveryMixin):
         cut = self.BIAS_MIN_CUT if bias else self.cfg.push["min_cut"]
         # a refinement of a set this daemon pushed is judged per axis (refine.py); the bias stage and
         # a unit set the daemon knows nothing of: every axis must gain
-        held_left, held_range = (None, None) if bias else self._held_info()
+        held_left, held_range, held_kept = (None, None, None) if bias else self._held_info()
         settled = refine.settled(self._trate.value, self._peak_trate)
         edge = settled and self._edge_costs(held_range, cut)
         wide = refine.widened(held_range, self.temp_seen, settled, edge)
@@ -651,8 +653,7 @@ class Session(RecoveryMixin):
         wide = wide or self._held_has_north
         floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
-                                            self.cfg.validation["min_improvement"],
-                                            None if bias else self._held_kept())
+                                            self.cfg.validation["min_improvement"], held_kept)
         self._keep_held = None
         if bias and not g.ok and self._applied_coeffs() is not None and np.all(np.isfinite(left)) \
                 and np.any(g.gains):
@@ -718,46 +719,37 @@ class Session(RecoveryMixin):
             worst = np.fmax(worst, np.sqrt(np.mean((at_t - held) ** 2, axis=0)))
         return worst
 
-    def _held_kept(self) -> np.ndarray | None:
-        """(3,) bool: the axes on which the held set kept an older set's bias (its record's
-        ``kept_axes``), or None."""
+    def _held_info(self) -> HeldInfo:
+        """The held set's predicted drift left [deg/s] (3,), temperature range [degC] and kept axes
+        ((3,) bool: where it kept an older set's bias, its ``kept_axes``) as its store record has
+        them; all None for a set this daemon has no acked record of."""
         a = self.applied
         if a is None or a.version <= 0:
-            return None
-        try:
-            rec = self.store.get(self.hello.serial, a.version)
-        except Exception:  # the store is advisory here
-            return None
-        kept = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("kept_axes") if rec else None
-        return np.array([ax in kept for ax in "xyz"]) if kept else None
-
-    def _held_info(self) -> tuple[np.ndarray | None, tuple[float, float] | None]:
-        """The held set's predicted drift left [deg/s] (3,) and temperature range [degC] as its store
-        record has them; (None, None) for a set this daemon has no acked record of."""
-        a = self.applied
-        if a is None or a.version <= 0:
-            return None, None
+            return None, None, None
         if a.version in self._held_cache:
             return self._held_cache[a.version]
         try:
             rec = self.store.get(self.hello.serial, a.version)
         except Exception:  # the store is unavailable: unknown for now, asked again at the next gate
-            return None, None
+            return None, None, None
         if rec is None:  # a set this daemon never recorded (factory, another tool): stays unknown
-            self._held_cache[a.version] = (None, None)
-            return None, None
+            self._held_cache[a.version] = (None, None, None)
+            return None, None, None
         if rec.push.get("status") != "acked":
-            return None, None  # not cached: an ack the store could not record yet may come later
+            return None, None, None  # not cached: an ack the store could not record yet may come later
         left: np.ndarray | None = None
         rng: tuple[float, float] | None = None
-        pred = ((rec.stats or {}).get("predicted_drift_dph") or {}).get("left") or {}
-        if all(isinstance(pred.get(k), int | float) for k in "xyz"):
-            left = np.array([pred[k] for k in "xyz"], dtype=float) / DPH
+        pred = (rec.stats or {}).get("predicted_drift_dph") or {}
+        left_dph = pred.get("left") or {}
+        if all(isinstance(left_dph.get(k), int | float) for k in "xyz"):
+            left = np.array([left_dph[k] for k in "xyz"], dtype=float) / DPH
         r = (rec.stats or {}).get("temp_range_c")
         if isinstance(r, list) and len(r) == 2 and all(isinstance(v, int | float) for v in r):
             rng = (float(r[0]), float(r[1]))
-        self._held_cache[a.version] = (left, rng)
-        return left, rng
+        kept_axes = pred.get("kept_axes")
+        kept = np.array([ax in kept_axes for ax in "xyz"]) if kept_axes else None
+        self._held_cache[a.version] = (left, rng, kept)
+        return left, rng, kept
 
     def _compensation(self, seq: np.ndarray, cols: dict[str, np.ndarray],
                       phi: np.ndarray | None = None) -> np.ndarray:

@@ -211,7 +211,7 @@ class UnitRequests:
         if res.ok and self.profile is not None and not moved:
             self._remember(write, res.params, res.target, self._push_range)
             rep = self._last_report = self._reported(self._params)
-            ack = CoeffAck(write.version, coeff_set_crc(rep.version, rep.terms_id, rep.coeffs_dps))
+            ack = CoeffAck(write.version, _crc(rep))
             out.extend([ack] * answers)
             if self.reboot_required:
                 log.info(  # the daemon's session logs the one WARNING (and status says so)
