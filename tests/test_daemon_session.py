@@ -758,3 +758,28 @@ def test_a_new_cause_of_a_down_link_is_said_and_shown(tmp_path: Path,
     eng.session.agreement = {"agree": True, "note": "the unit holds v1, as the store says"}
     eng._publish(22.0)
     assert eng.status["unit_set"]["stale"] and "when last read" in eng.status["unit_set"]["note"]
+
+
+def test_a_unit_busy_for_long_is_warned_of_twice_then_said_at_info(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A unit that NAKs BUSY for as long as it is busy (an autopilot armed, or learning its own
+    calibration) cost 7 WARNING and ERROR lines every 80-300 s, all switch-on (an integrator's audit).
+    The first push and its first retry say it; later rounds are INFO, the same version is still tried,
+    and it is taken once the unit is free."""
+    h = Harness.make(tmp_path, faults=Faults(nak_next=10_000))
+    h.switch_on()
+    caplog.set_level(logging.INFO)
+    h.run(300, until=lambda h: (h.session is not None and h.session._retry is not None
+                                and h.session._retry["round"] >= 4))
+    s = h.session
+    assert s is not None and s.last_push["status"] == "nak" and s.last_push["transient"]
+    loud = [r for r in caplog.records if r.levelno >= logging.WARNING and "push v" in r.getMessage()]
+    rounds = [r for r in caplog.records if "pushing v" in r.getMessage() and "again" in r.getMessage()]
+    assert len(rounds) >= 3  # rounds 1, 2 and 3 were tried
+    # first push and round 1: 3 NAKs and one end each; rounds 2 and 3: none above INFO
+    assert len(loud) == 8 and not [r for r in loud if r.levelno >= logging.ERROR]
+    version = s._retry["version"]
+    h.unit.faults.nak_next = 0  # the unit is free again: the same version is taken
+    h.run(400, until=lambda h: s.last_push.get("status") == "acked")
+    assert s.last_push["status"] == "acked" and s.last_push["version"] == version

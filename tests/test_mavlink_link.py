@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
 from typing import Any
@@ -601,10 +602,10 @@ def test_a_ground_station_s_write_of_the_compensation_is_reported_unasked(tmp_pa
             link.stop()
 
 
-def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp_path: Path) -> None:
+def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp_path: Path, caplog) -> None:
     """INS_TCAL1_ENABLE = 2: ArduPilot's own learning run, which its user started from a cold board.
     The first push wrote ENABLE = 0 and ended it unseen (an integrator's audit). Writes are NAKed BUSY
-    with the reason until the run ends."""
+    with the reason until the run ends; the same version refused for the same reason again is INFO."""
     import json as _json
 
     flash = {"params": {"INS_TCAL1_ENABLE": 2.0}, "boot_count": 0}
@@ -630,6 +631,13 @@ def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp
             link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: len(col.of(CoeffNak)) == 2, 10)
             assert col.of(CoeffNak)[1].reason == NakReason.BUSY and not col.of(CoeffAck)
+            caplog.set_level(logging.INFO)
+            caplog.clear()
+            link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))  # the daemon's retry round
+            assert wait_for(lambda: len(col.of(CoeffNak)) == 3, 10)
+            said = [r for r in caplog.records if "push of v5 refused" in r.getMessage()]
+            assert len(said) == 1 and said[0].levelno == logging.INFO
+            assert "refused again" in said[0].getMessage()
         finally:
             link.stop()
 

@@ -154,8 +154,14 @@ class PushTransaction:
     def __init__(
         self, write: CoeffWrite, send: Callable[[Any], None], now: float,
         ack_timeout_s: float = 1.0, retries: int = 3, *, backoff_s: float = 0.5, backoff_max_s: float = 8.0,
+        quiet: bool = False,
     ) -> None:
         self.write = write
+        # a later round of a version whose first round failed transiently (a unit BUSY for an hour: an
+        # autopilot armed, or learning its own calibration): its lines are INFO, the first round's
+        # WARNINGs said it already. At 7 WARNING/ERROR lines a round, every 80-300 s, an operator
+        # learnt to ignore them (an integrator's audit)
+        self._warn = logging.INFO if quiet else logging.WARNING
         self.expected_crc = coeff_set_crc(write.version, write.terms_id, write.coeffs_dps)
         self._send = send
         self.timeout_s = ack_timeout_s
@@ -217,7 +223,7 @@ class PushTransaction:
 
     def _retry_or_fail(self, now: float, status: str, reason: str, *, final: bool = False) -> None:
         self.reasons.append(reason)
-        log.warning("push v%d: %s", self.write.version, reason)
+        log.log(self._warn, "push v%d: %s", self.write.version, reason)
         if self.attempts < self.retries and not final:
             self.phase = PushPhase.BACKOFF
             self._deadline = now + self._backoff()
@@ -232,7 +238,8 @@ class PushTransaction:
                                  transient=transient and not ok,
                                  # the NAK that ended it; an earlier attempt's stays in reasons
                                  nak_reason=self.nak_reason if status == "nak" else None)
-        level = logging.INFO if ok else logging.ERROR
+        # a transient failure is tried again by the session (WARNING); a final one is not (ERROR)
+        level = logging.INFO if ok else self._warn if self.result.transient else logging.ERROR
         log.log(level, "push v%d ended: %s after %d attempt(s)", self.write.version, status, self.attempts)
 
     def on_message(self, msg: Any, now: float) -> bool:
@@ -263,7 +270,8 @@ class PushTransaction:
                 crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
             except ProtocolError as err:  # NaN/Inf or a malformed set under a valid frame CRC
                 self.reasons.append(f"read-back v{msg.version} refused: {err}")
-                log.warning("push v%d: read-back refused (%s); reading again", self.write.version, err)
+                log.log(self._warn, "push v%d: read-back refused (%s); reading again", self.write.version,
+                        err)
                 self._deadline = min(self._deadline, now + self.timeout_s / 2)
                 return True
             if crc == self.expected_crc:

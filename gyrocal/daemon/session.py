@@ -803,7 +803,8 @@ class Session(RecoveryMixin):
             return
         if self._retry is not None and now >= self._retry["at"]:
             r, self._retry = self._retry, None
-            log.info("unit %s: pushing v%d again (round %d)", self.hello.serial, r["version"], r["round"])
+            log.info("unit %s: pushing v%d again (round %d%s)", self.hello.serial, r["version"], r["round"],
+                     ", its failures said at INFO" if r["round"] >= 2 else "")
             self.start_push(r["version"], r["names"], r["coeffs"], now, retry_round=r["round"])
             return
         if now < self._next_check:
@@ -1185,7 +1186,8 @@ class Session(RecoveryMixin):
         self.reason = f"pushing v{version}"
         # an autopilot answers a push later than our protocol's unit (capabilities.ack_within_s)
         ack_s = max(self.cfg.push["ack_timeout_s"], self.caps.ack_within_s or 0.0)
-        self.push = PushTransaction(write, self._send, now, ack_s, self.cfg.push["retries"])
+        self.push = PushTransaction(write, self._send, now, ack_s, self.cfg.push["retries"],
+                                    quiet=retry_round >= 2)
         return None
 
     def _after_push(self, now: float) -> None:

@@ -303,6 +303,7 @@ class MavlinkLink(UnitRequests, Link):
         self._read_again_at: float | None = None  # monotonic s: a failed read is tried again from then
         self._read_fault: str | None = None  # why the last read after the HELLO failed, until one succeeds
         self._own_calibration = False  # the autopilot ended its own calibration run this boot
+        self._last_refusal: tuple[int, str] | None = None  # (version, why) of the last write refused
         self._last_report: CoeffReport | None = None  # the set last reported or acked, this boot
         self._report_wanted = False
         self._source: str | None = None

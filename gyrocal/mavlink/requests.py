@@ -94,7 +94,12 @@ class UnitRequests:
             return
         why, reason = self._refuse(msg)
         if why:
-            log.warning("mavlink link: push of v%d refused: %s", msg.version, why)
+            # the daemon tries a BUSY set again, for as long as the autopilot stays armed or learning:
+            # the same refusal of the same version is said once, then INFO (an integrator's audit)
+            again = self._last_refusal == (msg.version, why)
+            self._last_refusal = (msg.version, why)
+            log.log(logging.INFO if again else logging.WARNING, "mavlink link: push of v%d refused%s: %s",
+                    msg.version, " again" if again else "", why)
             out.append(CoeffNak(msg.version, crc, int(reason)))
             return
         lo, hi = self._push_bounds(msg)
