@@ -93,6 +93,13 @@ def stop(proc: subprocess.Popen[str]) -> int:
     return proc.returncode
 
 
+def unplugged(link: Path) -> None:
+    """Remove a killed unit's pty symlink, as udev removes a device's link at an unplug: left behind, it
+    named a /dev/pts number that another test's unit took next, and this test's daemon opened that unit
+    (a run with -n 2 under load)."""
+    link.unlink(missing_ok=True)
+
+
 def _acked(sock: Path) -> dict[str, Any] | None:
     st = status(sock)
     push = st.get("last_push") or {}
@@ -370,6 +377,7 @@ def test_link_vanishes_and_returns_the_daemon_reconnects_and_recalibrates(tmp_pa
         wait_for(lambda: status(sock).get("state") == "COLLECTING", 30, "a session", tmp_path)
         sim.kill()  # the unit's cable is pulled: the pty vanishes
         sim.wait(5)
+        unplugged(pty)
         wait_for(lambda: status(sock)["link"].get("connected") is False or
                  status(sock)["link"].get("reconnects", 0) > 0, 20, "the daemon to notice", tmp_path)
         assert daemon.poll() is None
@@ -400,6 +408,7 @@ def test_another_unit_plugged_in_without_a_hello_is_never_calibrated_under_the_l
         before = sorted(p.name for p in (udir / "4242").iterdir())
         sim.kill()
         sim.wait(5)
+        unplugged(pty)
         sim = start_sim(tmp_path, "--link", "pty", "--pty-link", str(pty), "--serial", "888",
                         "--never-hello", name="other")
         st = wait_for(lambda: (s := status(sock)).get("reason", "").startswith(

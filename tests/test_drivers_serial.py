@@ -199,3 +199,44 @@ def test_a_port_this_user_may_not_open_gets_the_permission_advice(monkeypatch) -
         link._open()
     assert "Permission denied" in str(err.value) and "may not open it" in str(err.value)
     assert "plugged in" not in str(err.value)
+
+
+def test_a_second_daemon_does_not_take_the_port_at_a_replug(tmp_path: Path, monkeypatch) -> None:
+    """The exclusive open held the port only while it was open: at a replug, a second daemon with its
+    own store could open the new tty first and calibrate the unit against that store (an outside
+    audit). The first claims the configured path for its life; the second waits, saying who holds it,
+    and takes the port once the first stops."""
+    monkeypatch.setenv("GYROCAL_LOCK_DIR", str(tmp_path))
+    link_path = tmp_path / "gyro0"
+    ring_a, ring_b = RingBuffer(50_000), RingBuffer(50_000)
+    rec_a, rec_b = Recorder(ring_a), Recorder(ring_b)
+    kw = {"backoff_initial_s": 0.05, "backoff_max_s": 0.2}
+    a = SerialLink(str(link_path), ring_a, rec_a.on_control, rec_a.on_event, **kw)
+    b = SerialLink(str(link_path), ring_b, rec_b.on_control, lambda n, d: rec_b.events.append(d), **kw)
+    a.start(wait=False)
+    try:
+        with SimProcess("--rate", "300", "--pty-link", str(link_path), tmp_path=tmp_path):
+            assert wait_for(lambda: a.connected and ring_a.pushed > 50)
+            b.start(wait=False)
+            assert wait_for(lambda: any("claimed by another gyrocal daemon" in e for e in rec_b.events))
+        assert wait_for(lambda: "link_lost" in rec_a.events)
+        before = ring_a.pushed
+        with SimProcess("--rate", "300", "--pty-link", str(link_path), tmp_path=tmp_path):  # the replug
+            assert wait_for(lambda: ring_a.pushed > before + 50)
+            assert ring_b.pushed == 0 and not b.connected
+            a.stop()
+            assert wait_for(lambda: b.connected and ring_b.pushed > 50)
+    finally:
+        a.stop()
+        b.stop()
+    assert f"pid {__import__('os').getpid()}" in " ".join(rec_b.events)
+
+
+def test_a_port_is_claimed_in_run_lock_under_its_configured_path(monkeypatch) -> None:
+    """The claim's name is the configured path (a udev symlink stays the same across a replug); a URL
+    that is not a device has none."""
+    from gyrocal.drivers.serial_link import _claim_path
+
+    monkeypatch.delenv("GYROCAL_LOCK_DIR", raising=False)
+    assert str(_claim_path("/dev/gyrocal-imu")) == "/run/lock/gyrocal-dev_gyrocal-imu.lock"
+    assert _claim_path("socket://127.0.0.1:5000") is None and _claim_path("loop://") is None

@@ -11,7 +11,12 @@ data". The base class then closes the port and reopens it with backoff until the
 
 from __future__ import annotations
 
-from typing import Any
+import fcntl
+import logging
+import os
+import re
+from pathlib import Path
+from typing import IO, Any
 
 import serial
 
@@ -22,6 +27,20 @@ from gyrocal.protocol.serial_framing import FrameDecoder, encode_frame
 
 DEFAULT_BAUDRATE = 921600
 """The unit's default line rate [bit/s]; ignored by ptys, sockets and loop://."""
+
+LOCK_DIR_ENV = "GYROCAL_LOCK_DIR"
+"""Environment variable naming the port-claim directory (default /run/lock, FHS's lock directory)."""
+
+log = logging.getLogger("gyrocal.drivers.serial")
+
+
+def _claim_path(url: str) -> Path | None:
+    """The claim file of a device path (None for a pyserial URL such as socket:// or loop://): one
+    name per configured path, so a daemon keeps its port across a replug whatever the new tty is."""
+    if "://" in url:
+        return None
+    name = re.sub(r"[^A-Za-z0-9._-]", "_", os.path.abspath(url).strip("/"))
+    return Path(os.environ.get(LOCK_DIR_ENV, "/run/lock")) / f"gyrocal-{name}.lock"
 
 
 def _fix_hint(url: str, err: BaseException | None = None) -> str:
@@ -61,12 +80,74 @@ class SerialLink(Link):
         self._port: serial.SerialBase | None = None
         self._decoder = FrameDecoder()
         self._bytes_sent = 0
+        self._claim: IO[str] | None = None
+        self._claim_said = False
 
     @property
     def target(self) -> str:
         return self.url
 
+    def _take_claim(self) -> None:
+        """Claim the port for this daemon's life, across unplugs: a lock on /run/lock/gyrocal-<path>.lock.
+
+        Why: the exclusive open holds the port only while it is open. At a replug a second daemon
+        (its own store, started by hand) could open the new tty first and calibrate the unit against
+        another store: the service then read a foreign set (an outside audit said it, not prevented).
+        A lock directory that cannot be written (a container without /run/lock) is said once, and the
+        exclusive open alone guards the port then."""
+        path = _claim_path(self.url)
+        if path is None or self._claim is not None:
+            return
+        try:
+            fh = path.open("a+", encoding="utf-8")
+        except OSError as err:
+            if not self._claim_said:
+                log.info("serial %s: no port claim in %s (%s): the exclusive open alone guards the port",
+                         self.url, path.parent, err.strerror or err)
+                self._claim_said = True
+            return
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            same = os.fstat(fh.fileno()).st_ino == path.stat().st_ino
+        except OSError as err:
+            fh.seek(0)
+            holder = fh.read().strip() or "a process"
+            fh.close()
+            if not isinstance(err, FileNotFoundError):
+                raise LinkError(f"serial port {self.url!r} is claimed by another gyrocal daemon ({holder}; "
+                                f"lock {path}): one daemon per port; stop it, this one takes the port when "
+                                "it is free") from None
+            same = False
+        if not same:  # its holder removed it as we locked it (stop below): claimed at the next open
+            fh.close()
+            raise LinkError(f"serial port {self.url!r}: its claim {path} was just released; taken next try")
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()}\n")
+        fh.flush()
+        self._claim = fh
+
+    def start(self, wait: bool = True) -> None:
+        try:
+            super().start(wait)
+        except LinkError:  # a one-shot open that failed (wait=True): nobody keeps this port
+            self._release_claim()
+            raise
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        super().stop(timeout_s)
+        self._release_claim()
+
+    def _release_claim(self) -> None:
+        claim, self._claim = self._claim, None
+        if claim is not None:  # removed while locked, then unlocked: a waiter checks it locked this file
+            path = _claim_path(self.url)
+            if path is not None:
+                path.unlink(missing_ok=True)
+            claim.close()
+
     def _open(self) -> None:
+        self._take_claim()
         try:
             # exclusive: a second daemon on the same port (its own state_dir and socket) took half the
             # bytes of each, both flapping link_lost / link_up 4 times a second (two outside audits);
