@@ -203,3 +203,28 @@ def test_another_hosts_frames_to_the_unit_are_counted_and_said(caplog: pytest.Lo
     finally:
         other.shutdown()
         link.stop()
+
+
+def test_a_write_resent_many_times_is_never_taken_for_another_host() -> None:
+    """A unit NAKed the same set BUSY ten times: from the 6th write on, the daemon's own frames came back
+    as "another host is talking to the unit" (an integrator's campaign, 3 runs of 3). The echoes of
+    identical frames resent past the link's window of frames sent are still its own."""
+    from gyrocal.drivers import can_link
+
+    channel = f"gyrocal-test-resend-{threading.get_ident()}"
+    ring = RingBuffer(1000)
+    sink = Sink(ring)
+    link = open_link({"kind": "can", "bus": {"interface": "virtual", "channel": channel,
+                                             "receive_own_messages": True}}, ring,
+                     sink.on_control, sink.on_event)
+    write = CoeffWrite(2, termsets.SEED000_ID, np.full((3, 10), 1e-3).tolist())
+    try:
+        assert wait_for(lambda: link.connected, 5)
+        sent = 0
+        while sent <= 3 * can_link.SENT_KEPT:
+            link.send(write)
+            sent += len(link._codec.encode(write))
+            assert wait_for(lambda n=sent: link.stats()["echo_frames"] == n, 5), link.stats()
+        assert link.stats()["other_host_frames"] == 0
+    finally:
+        link.stop()

@@ -149,6 +149,10 @@ class CanLink(Link):
             own = self._sent[key] > 0
             if own:
                 self._sent[key] -= 1
+                # its send leaves the window too: left there, trimming it later took the count of a
+                # newer identical frame (a write resent on BUSY), whose echo was then called another
+                # host's (an integrator's campaign: at the 6th write of one version, 3 runs of 3)
+                self._sent_order.remove(key)
         if own:
             self._own_echo += 1
             return
