@@ -86,7 +86,8 @@ def _positive(text: str) -> float:
 WATCH_IGNORES = frozenset({"uptime_s", "liveness", "latency_s", "ring", "samples", "still_samples",
                            "trained_samples", "link", "monitor_rms_dps", "coefficients_dps",
                            "uncertainty_dps", "rate_hz", "earth", "still", "predicted_drift_dph",
-                           "converged_reason", "poses_seen", "dtemp_inexact_samples"})
+                           "converged_reason", "poses_seen", "dtemp_inexact_samples",
+                           "push_blind_samples"})
 """Status keys that move with every sample: ``--watch`` prints a line when anything else changes
 (state, reason, pushes, faults, the unit's set), with these as they are then."""
 

@@ -265,6 +265,10 @@ class Session(RecoveryMixin):
         self._rank_since: tuple[int, float] = (-1, float("nan"))  # (rank, unit time [s] it was reached)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
+        # (from, to) unit time [s]: samples whose set is not known, from a push's first write to its ack,
+        # or to the read of the unit's set after a push that failed (to None until then)
+        self._blind: list[float | None] | None = None
+        self.blind_samples = 0  # samples neither learnt, held out nor monitored for that
         self.inexact_samples = 0  # samples neither learnt nor held out: the unit's dtemp not yet known
         self._inexact_said = False  # the stretch of inexact samples now running has been logged
         self._unknown_terms: dict[int, str] = {}  # terms_id the unit NAKed UNKNOWN_TERMS -> the reason
@@ -303,6 +307,7 @@ class Session(RecoveryMixin):
                     names, coeffs = self._pending
                     new = AppliedSet(self.push.write.version, terms_id(names), tuple(names), coeffs)
                     self._switch = (new, last_seq)
+                    self._end_blind()
                 self._after_push(now)
                 if self.push is None and isinstance(msg, CoeffReport) and check_report(msg) is None:
                     # the push's read-back is a read of the unit's set like any other: the store and
@@ -323,6 +328,11 @@ class Session(RecoveryMixin):
             self._forget_set()
             self._read_asks = 0
             self.request_read(now)
+
+    def _end_blind(self) -> None:
+        """The unit's set is known again from the newest sample heard on (an ack, a read)."""
+        if self._blind is not None and self._blind[1] is None:
+            self._blind[1] = self.unit_clock_s
 
     def _forget_set(self) -> None:
         """The unit's set is unknown until it is read again (kept aside to see whether it changed)."""
@@ -396,6 +406,8 @@ class Session(RecoveryMixin):
             log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
                      applied.version, applied.terms_id)
             self.reason = self._refused_terms() or "collecting still samples"
+        if self.applied is None:
+            self._end_blind()  # a failed push's samples up to here: their set is not known
         self.applied = applied
         self._read_asks = 0
         self._reconcile(msg)
@@ -469,6 +481,7 @@ class Session(RecoveryMixin):
             self.earth.add(phi[still], raw[still] + north_part[still], c_ref[still])
         if c_ref is not None and self.earth.found_before:
             still = still & clean
+        still = self._outside_blind(samples["t"], still)
         blocks, train = self.acc.feed(raw, out, phi, still)
         for b in blocks:  # when, on the unit's clock: a wandering bias is validated on recent blocks
             b.t_s = self._t_last
@@ -498,6 +511,27 @@ class Session(RecoveryMixin):
             ref = (float(t_s[out[-1]]), float(temp_c[out[-1]]))
         self._steady_from = ref
         self._steady_s = float(t_s[-1]) - ref[0]
+
+    def _outside_blind(self, t_s: np.ndarray, still: np.ndarray) -> np.ndarray:
+        """``still`` without the samples [unit time, s] whose set is not known (``_blind``).
+
+        Why: the unit may apply a write whose ack is lost (a bus silence, noise), and the retry's ack
+        comes seconds later; the samples between were rebuilt with the set held before. 3 s after the
+        push, the drift monitor read 21-29 deg/h where the unit left 0.5-1.3 and raised an alarm (an
+        integrator's CAN campaign, 2 runs of 2). An autopilot applies its parameters one by one while
+        they are written. Such samples are neither learnt, nor held out, nor monitored."""
+        b = self._blind
+        if b is None or not t_s.size:
+            return still
+        lo, hi = b
+        blind = t_s > lo if hi is None else (t_s > lo) & (t_s <= hi)
+        if hi is not None and t_s[-1] > hi:
+            self._blind = None  # every sample of the window has been decided
+        if not blind.any():
+            return still
+        self.blind_samples += int(blind.sum())
+        self.acc.discard_partial()  # a block must not reach across the window
+        return still & ~blind
 
     def _cold_bias_check(self) -> str:
         """Let a cold start whose data has stopped adding directions learn its constant alone
@@ -1181,6 +1215,9 @@ class Session(RecoveryMixin):
                 self._store_push(version, dict(self.last_push), now)
             return why
         self._pending = (list(names), coeffs)
+        if self._blind is None or self._blind[1] is not None:  # a window still open keeps its start
+            start = self.unit_clock_s if self._blind is None else min(self._blind[0], self.unit_clock_s)
+            self._blind = [start, None]
         self._retry, self._retry_round = None, retry_round  # this push supersedes a pending retry
         self.state = State.PUSHING
         self.reason = f"pushing v{version}"
@@ -1339,6 +1376,7 @@ class Session(RecoveryMixin):
                 "version": self.applied.version, "terms_id": self.applied.terms_id},
             "samples": self.samples, "still_samples": self.still_samples,
             "trained_samples": self.learner.samples, "dtemp_inexact_samples": self.inexact_samples,
+            "push_blind_samples": self.blind_samples,
             "stray_acks": self.stray_acks,
             "terms": self.names,
             "coefficients_dps": finite_or_none(self.learner.coefficients),
