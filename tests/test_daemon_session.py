@@ -165,6 +165,15 @@ def test_a_unit_mounted_at_one_pose_with_no_stored_set_gets_its_bias(tmp_path: P
     after = h.unit.status()["drift_rms_compensated_dps"]
     for a in "xyz":
         assert after[a] * 5 <= before[a], (a, before[a], after[a])
+    # the next switch-on, still at that pose: its bias stage keeps the held set's zero terms, so it is
+    # the constant alone too (it said 0.72, then 0.22 deg/h over the sphere where the unit left 76/23/26
+    # away from its pose: an integrator's CAN campaign)
+    h.switch_on()
+    h.run(30, until=lambda h: h.store.latest(4242).version > rec.version)
+    nxt = h.store.latest(4242)
+    assert nxt.version > rec.version and np.all(np.asarray(nxt.coefficients_dps)[:, 1:] == 0.0)
+    pred = nxt.stats["predicted_drift_dph"]
+    assert pred["constant_only"] and pred["left_sphere"] == pred["bound"] == none
 
 
 def test_an_ack_no_push_waits_for_makes_the_session_read_the_unit_s_set_again(tmp_path: Path) -> None:

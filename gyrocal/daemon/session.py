@@ -1107,10 +1107,13 @@ class Session(RecoveryMixin):
         if "unseen_share" in self.prediction:
             self._push_prediction["unseen_share"] = round(float(self.prediction["unseen_share"]), 4)
         self._push_prediction["stage"] = stage
-        if stage == "bias" and self.learner.cold_ready:
+        if (stage == "bias" and self.learner.cold_ready) or _constant_only(proj.held_names, proj.held_dps):
             # a constant alone, every other term 0 (a unit at one pose, a board at one temperature):
             # good where the unit was seen, unknown elsewhere. Its sphere figure said 1.02 deg/h where
-            # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit)
+            # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit).
+            # So at every later switch-on still at that pose: its bias stage and refinements, kept
+            # from the held constant-only set, said 0.72 then 0.22 deg/h over the sphere where the
+            # unit left 76/23/26 away from its pose (an integrator's CAN campaign)
             nan = _xyz_dph(np.full(3, np.nan))
             self._push_prediction.update(left_sphere=nan, bound=nan, expected=nan, constant_only=True)
         if kept:  # those axes hold the held set's rows: its own prediction, where its record has one,
@@ -1414,7 +1417,8 @@ class Session(RecoveryMixin):
         1.02 deg/h over the sphere where a vehicle unit's drift was 8.4/21.7/18.5: an audit)."""
         out = {k: (_xyz_dph(v) if k in PREDICTED_KEYS else v)
                for k, v in self.prediction.items() if k != "gate"}
-        if self.learner.cold_ready and out:
+        coeffs = self.learner.coefficients
+        if out and (self.learner.cold_ready or (coeffs is not None and _constant_only(self.names, coeffs))):
             nan = _xyz_dph(np.full(3, np.nan))
             out.update(left_sphere=nan, bound=nan, expected=nan, constant_only=True)
         return out
@@ -1432,6 +1436,17 @@ def _axes(mask: np.ndarray) -> str:
 def _dph(v: np.ndarray) -> str:
     """A per-axis figure [deg/s] as deg/h text for log lines and reasons."""
     return "/".join(f"{x * DPH:.3g}" for x in np.asarray(v, dtype=float))
+
+
+def _constant_only(names: Any, coeffs: Any) -> bool:
+    """Whether a set [deg/s] is its constant alone, every other term exactly 0: what a unit seen at
+    one pose (or one temperature) gets, never a fit that found those terms (a fit is never exactly 0)."""
+    c = np.asarray(coeffs, dtype=float)
+    names = list(names)
+    if "1" not in names or c.ndim != 2 or c.shape[1] != len(names) or len(names) < 2:
+        return False
+    others = [i for i, n in enumerate(names) if n != "1"]
+    return bool(np.all(c[:, others] == 0.0))
 
 
 def _xyz_dph(v: np.ndarray) -> dict[str, float | None]:
