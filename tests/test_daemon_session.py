@@ -815,3 +815,34 @@ def test_samples_between_an_applied_write_and_its_late_ack_raise_no_drift_alarm(
     assert s.blind_samples > 0 and s.status()["push_blind_samples"] == s.blind_samples
     left = h.unit.status()["drift_rms_compensated_dps"]
     assert max(left.values()) < 2e-3  # the set itself is good: under 7.2 deg/h
+
+
+def test_a_bias_stage_the_store_could_not_record_comes_first_when_it_returns(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The store was full at switch-on, so the bias stage was not pushed; once it returned, a full set
+    learnt over 8 poses came first and replaced the held 18-pose gravity terms with ones 3-6x worse,
+    for good (an integrator's CAN campaign, 2 runs of 2). The bias stage is due again."""
+    from dataclasses import replace
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
+    first = h.store.latest(4242)
+    h.unit.truth = replace(h.unit.truth, switch_on_bias_dps=0.05)
+    real_add = h.store.add
+
+    def full(*a: object, **kw: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(h.store, "add", full)
+    h.switch_on()
+    h.run(20)
+    s = h.session
+    assert s.store_error and not s.last_push  # nothing recorded, nothing pushed
+    monkeypatch.setattr(h.store, "add", real_add)
+    h.run(30, until=lambda h: h.store.latest(4242).version > first.version)
+    rec = h.store.latest(4242)
+    assert rec.version > first.version and rec.stats["validation"]["stage"] == "bias"
+    c0, c1 = np.asarray(first.coefficients_dps), np.asarray(rec.coefficients_dps)
+    assert np.array_equal(c0[:, 1:], c1[:, 1:])  # the held gravity terms, this switch-on's bias

@@ -131,6 +131,9 @@ class Learner:
         cold = prior_c is None and self.const is not None and len(self.names) > 1
         self._zero = np.zeros((3, len(self.names))) if cold else None
         self.cold_ready = False
+        # the session owes the unit its bias stage (the store could not record it): the stage stays
+        # bias-only past full rank until it is pushed, as it would have been at the first still second
+        self.owe_bias = False
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)
         self._n = 0
@@ -264,7 +267,7 @@ class Learner:
     def bias_only(self) -> bool:
         """True while a warm start lacks the excitation for a full update (see the module docstring)."""
         return (self._base is not None and self.const is not None and self._n > 0
-                and self._identifiability().rank < self.full_rank)
+                and (self.owe_bias or self._identifiability().rank < self.full_rank))
 
     def _identifiability(self) -> Any:
         return self._cached("ident", lambda: self.est.identifiability)

@@ -976,6 +976,14 @@ class Session(RecoveryMixin):
             log.info("unit %s: %s", self.hello.serial, why)
         self._validate(now, self.monitor, stage="bias")
 
+    def _bias_unsent(self, stage: str) -> None:
+        """A bias stage the store could not record was not pushed: it is due again when the store
+        returns. Marked done, a full set learnt over 8 poses came first instead and replaced the held
+        18-pose gravity terms with ones 3-6x worse, for good (an integrator's CAN campaign, 2 of 2)."""
+        if stage == "bias":
+            self._bias_pushed = False
+            self.learner.owe_bias = True
+
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
         self._validated_at = self.learner.samples
@@ -1072,6 +1080,7 @@ class Session(RecoveryMixin):
             if stage == "bias":
                 log.info("unit %s: bias stage: %s", self.hello.serial, why)
                 self.state, self.reason = State.COLLECTING, why
+                self.learner.owe_bias = False  # refused on its merits: the full set may follow
                 return
             # routine either way (a re-check while monitoring, or a first set that needs more samples):
             # INFO, so `journalctl -p warning` shows faults only (an operator's audit); status says why
@@ -1099,6 +1108,7 @@ class Session(RecoveryMixin):
             return
         if now < self._store_retry_at:
             self.state = State.MONITORING if self.validated_rms is not None else State.COLLECTING
+            self._bias_unsent(stage)
             return
         self._push_prediction = {k: _xyz_dph(v) for k, v in self.prediction.items()
                                  if k in PREDICTED_KEYS}
@@ -1142,8 +1152,10 @@ class Session(RecoveryMixin):
             self.reason = (f"store unavailable: {err}; validated set not pushed, "
                            f"retrying every {self.STORE_RETRY_S:g} s")
             log.log(logging.ERROR if first else logging.DEBUG, "unit %s: %s", self.hello.serial, self.reason)
+            self._bias_unsent(stage)
             return
         self.store_error = None
+        self.learner.owe_bias = False  # recorded: pushed next, the stage is paid
         self.validated_rms = rms_new
         if stage == "bias":
             # judged in sample on a few blocks: the alarm's reference must hold what other poses and
