@@ -662,6 +662,13 @@ def test_a_temperature_no_sensor_reads_never_reaches_the_estimator(
     seen = np.concatenate(fed)
     assert seen.size == n - 6 and seen.min() >= 20.0 and seen.max() < 21.1
     assert len([r for r in caplog.records if "unit temperature" in r.getMessage()]) == 1
+    # the drops after the first word are said when its minute ends, once (they went unsaid for good:
+    # an integrator's CAN campaign)
+    with caplog.at_level(logging.WARNING):
+        eng._tick(61.0)
+        eng._tick(200.0)
+    said = [r.getMessage() for r in caplog.records if "unit temperature" in r.getMessage()]
+    assert len(said) == 2 and said[1].startswith("unit temperature: 5 samples dropped since the last word")
     # a real jump (a sensor re-initialised) is followed after RESYNC samples
     from gyrocal.daemon.tempcheck import RESYNC
 

@@ -379,6 +379,8 @@ class Engine(CommandsMixin):
         if now >= self._next_errors_check:
             self._next_errors_check = now + self.ERRORS_SAY_S
             self._contain("link error summary", self._say_link_errors)
+        if self.temp_check.dropped > self._temp_said[1]:  # drops within the last minute: said when it ends
+            self._say_temperature(None, now)
         if self.session is not None:
             self.session.tick(now)
             if self.session.unconfirmed is not None and now >= self._next_hello_request:
@@ -648,15 +650,17 @@ class Engine(CommandsMixin):
                 self._ask_hello(now)
             self._feed(part, now)
 
-    def _say_temperature(self, dropped_c: np.ndarray, now: float) -> None:
-        """One WARNING a minute at most for temperatures no sensor reads, with the counts so far."""
+    def _say_temperature(self, dropped_c: np.ndarray | None, now: float) -> None:
+        """One WARNING a minute at most for temperatures no sensor reads, with the counts so far; drops
+        within a minute of the last word are said when that minute ends (a 1 s sensor outage 40 s after
+        the first word went unsaid for good: an integrator's CAN campaign)."""
         said_at, said_n = self._temp_said
         if now - said_at >= 60.0:
             tc = self.temp_check
+            last = "" if dropped_c is None else f"; this one {float(dropped_c[0]):.2f} degC"
             log.warning("unit temperature: %d samples dropped since the last word (%d out of %g..%g degC, "
-                        "%d spikes in all; this one %.2f degC): a sensor or firmware fault, never learnt",
-                        tc.dropped - said_n, tc.out_of_range, TEMP_MIN_C, TEMP_MAX_C, tc.spikes,
-                        float(dropped_c[0]))
+                        "%d spikes in all%s): a sensor or firmware fault, never learnt",
+                        tc.dropped - said_n, tc.out_of_range, TEMP_MIN_C, TEMP_MAX_C, tc.spikes, last)
             self._temp_said = (now, tc.dropped)
 
     def _feed(self, block: np.ndarray, now: float) -> None:
