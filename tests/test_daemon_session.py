@@ -736,6 +736,40 @@ def test_a_second_daemon_on_the_same_store_is_refused_in_one_line(tmp_path: Path
     second.close()
 
 
+def test_a_full_state_directory_without_a_lock_file_is_no_exit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """On a full disk the lock file was made but its pid could not be written: a traceback and exit 1,
+    under systemd a restart every 5 s that never calibrated (an operator's audit). The lock holds; one
+    WARNING says the pid is missing."""
+    import builtins
+
+    eng = _engine_with_stub_link(tmp_path)
+    real_open = builtins.open
+
+    class Full:
+        def __init__(self, fh: object) -> None:
+            self.fh = fh
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self.fh, name)
+
+        def fileno(self) -> int:
+            return self.fh.fileno()
+
+        def write(self, text: str) -> int:
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(type(eng.cfg.state_dir / "x"), "open",
+                        lambda self, *a, **kw: Full(real_open(self, *a, **kw)))
+    eng._lock_state_dir()
+    monkeypatch.undo()
+    assert eng._lock_fh is not None
+    assert any("pid not written (No space left on device)" in r.getMessage() for r in caplog.records)
+    eng.link = None
+    eng.close()
+
+
 def test_a_flapping_link_is_summed_up_once_a_minute(tmp_path: Path,
                                                     caplog: pytest.LogCaptureFixture) -> None:
     """A connector flapping every 1.5 s gave 5-10 lines and 1-3 WARNINGs per flap: 58k WARNINGs a day

@@ -227,10 +227,15 @@ class Engine(CommandsMixin):
                                f"{self.cfg.state_dir}: one daemon per store; stop it first (systemctl stop "
                                "gyrocal) or give this one its own state_dir (config) or --state-dir"
                                ) from None
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"pid {os.getpid()}\n")
-        fh.flush()
+        try:
+            fh.seek(0)
+            fh.truncate()
+            fh.write(f"pid {os.getpid()}\n")
+            fh.flush()
+        except OSError as err:  # a full disk: the lock holds without the pid (a traceback and exit 1 was
+            # a restart loop every 5 s that never calibrated: an operator's audit)
+            log.warning("state directory %s: the lock is held but its pid not written (%s)",
+                        self.cfg.state_dir, err.strerror or err)
         self._lock_fh = fh
 
     def _tidy_store(self) -> None:
