@@ -233,6 +233,7 @@ def test_the_next_switch_on_widens_the_stored_range(tmp_path: Path) -> None:
     lo, hi = recs[-1].stats["temp_range_c"]
     lo1, hi1 = rec1.stats["temp_range_c"]
     assert lo <= lo1 + 1e-9 and hi > hi1 + 1.0, (rec1.stats["temp_range_c"], recs[-1].stats["temp_range_c"])
+    assert recs[-1].stats["temp_information_range_c"] == recs[-1].stats["temp_range_c"]
     # and the set holds over all of it: the curve from both warm-ups, not from the 40-52 degC one alone
     before, after = _shape_error(h, recs[-1].coefficients_dps, lo, hi)
     assert np.all(after[1:] * 10 <= before[1:]), (before * DPH, after * DPH)
@@ -326,3 +327,29 @@ def test_no_drift_alarm_beyond_the_held_set_s_range_where_a_refinement_is_due(tm
     s._context["temp"] = 30.0
     s._check_alarm()
     assert s.alarm and not s.alarm_beyond_range
+
+
+def test_a_bias_stage_records_the_held_set_s_range_and_carries_the_information_s(tmp_path: Path) -> None:
+    """A bias stage keeps the held set's temperature terms, so its range. Recorded as the range seen, a
+    year of bias stages widened it to -25..70 degC over terms learnt at 19..38, and the refinement the
+    wider range calls for never came: 17.6/20.5/2.5 deg/h left in a winter warm-up where no temperature
+    terms left 8.7/3.4/16.3 (a fleet engineer's year of switch-ons). The information's own range is
+    carried beside it, and is what the next switch-on merges."""
+    h = _warming_harness(tmp_path)
+    h.switch_on()
+    s = h.session
+    s.temp_seen = (40.0, 50.0)
+    s._held_info = lambda: (None, (20.0, 35.0), None)
+    s.last_validation = {"stage": "bias"}
+    assert s._set_range() == [20.0, 35.0] and s.temp_range() == [40.0, 50.0]
+    s.last_validation = {"stage": "full"}
+    assert s._set_range() == [40.0, 50.0]
+    cfg = _cfg(tmp_path)
+    rng = np.random.default_rng(5)
+    phi, y = _session_data(np.linspace(20.0, 40.0, 2000), np.zeros(3), np.zeros((3, 3)), rng)
+    first = Learner(cfg, None, 250.0)
+    first.update_many(phi, y)
+    prior = SimpleNamespace(terms=TERMS, coefficients_dps=first.coefficients.tolist(), version=1,
+                            stats={"temp_information": first.temp_information(), "temp_range_c": [20.0, 35.0],
+                                   "temp_information_range_c": [20.0, 50.0]})
+    assert Learner(cfg, prior, 250.0).prior_range == (20.0, 50.0)

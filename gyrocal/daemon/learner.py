@@ -143,7 +143,9 @@ class Learner:
         self.prior_range: tuple[float, float] | None = None  # [degC] of the information merged
         if self.has_prior:
             self.prior_info = self._merge_information(prior)
-            r = (getattr(prior, "stats", None) or {}).get("temp_range_c")
+            stats = getattr(prior, "stats", None) or {}
+            # the range of the information carried (a bias stage's own temp_range_c is its held set's)
+            r = stats.get("temp_information_range_c", stats.get("temp_range_c"))
             if self.prior_info is not None and isinstance(r, list) and len(r) == 2:
                 self.prior_range = (float(r[0]), float(r[1]))
         # reads of the estimator (eigen-decompositions of R) are pure functions of its state, which

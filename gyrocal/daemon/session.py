@@ -1179,15 +1179,31 @@ class Session(RecoveryMixin):
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
                    "predicted_drift_dph": self._push_prediction,
                    "warm_started_from": self.warm_started_from, "resumed_from": self.resumed_from,
-                   # the range the set was learnt over (this and earlier switch-ons' merged) and the
-                   # information on its temperature terms for the next switch-on (learner.py)
-                   "temp_range_c": self.temp_range(),
-                   "temp_information": self.learner.temp_information()},
+                   # the range the set's temperature terms were learnt over (this and earlier
+                   # switch-ons' merged; a bias stage keeps the held set's terms, so its range), and
+                   # the information on those terms for the next switch-on with the range it spans
+                   # (learner.py)
+                   "temp_range_c": self._set_range(),
+                   "temp_information": self.learner.temp_information(),
+                   "temp_information_range_c": self.temp_range()},
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
             push={"status": "pending"},
         )
         rec = self.store.add(rec, min_version=self.version_floor())
         return {"version": rec.version}
+
+    def _set_range(self) -> list[float] | None:
+        """The range [degC] the set about to be recorded holds its temperature terms for: a bias stage's
+        are the held set's, so is its range. Recorded as the range seen, a year of bias stages widened
+        it to -25..70 degC over terms learnt at 19..38, and the refinement that the wider range calls
+        for never came: 17.6/20.5/2.5 deg/h left in a winter warm-up where no temperature terms left
+        8.7/3.4/16.3 (a fleet engineer's year of switch-ons)."""
+        rng = self.temp_range()
+        if self.last_validation.get("stage") == "bias":
+            held = self._held_info()[1]
+            if held is not None:
+                return [held[0], held[1]]
+        return rng
 
     def temp_range(self) -> list[float] | None:
         """The temperature range [degC] the learnt set covers: this session's still samples, merged with
