@@ -887,3 +887,39 @@ def test_a_bias_stage_the_store_could_not_record_comes_first_when_it_returns(
     assert rec.version > first.version and rec.stats["validation"]["stage"] == "bias"
     c0, c1 = np.asarray(first.coefficients_dps), np.asarray(rec.coefficients_dps)
     assert np.array_equal(c0[:, 1:], c1[:, 1:])  # the held gravity terms, this switch-on's bias
+
+
+def test_a_set_a_slow_store_took_seconds_to_record_is_not_pushed_to_the_next_boot(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A store on a slow disk took 10 s to write a record; meanwhile the unit switched off and on, and
+    the last boot's set went to the new boot 1.0 s after its switch-on and ran for 17 s (an operator's
+    slow-disk audit). A set whose record took over SLOW_WRITE_S is pushed once the unit's samples of that
+    time are read: after a HELLO among them, never; with none, then."""
+    import time as _time
+
+    from gyrocal.daemon.session import Session
+
+    for reboot in (False, True):
+        h = Harness.make(tmp_path / str(reboot))
+        real_add = h.store.add
+
+        def slow_add(*a: object, _real=real_add, **kw: object) -> object:
+            _time.sleep(Session.SLOW_WRITE_S + 0.2)
+            return _real(*a, **kw)
+
+        monkeypatch.setattr(h.store, "add", slow_add)
+        h.switch_on()
+        h.run(90, until=lambda h: h.session._push_due is not None)
+        s = h.session
+        version = s._push_due["version"]
+        assert sum(h.unit.writes.values()) == 0 and "a slow store" in s.reason
+        if reboot:  # the HELLO of the next boot was queued behind the write: the engine closes the session
+            s.close("a new session started (boot 2)", h.now)
+            h.switch_on()
+            h.run(0.5)
+            assert sum(h.unit.writes.values()) == 0 and h.unit.applied is None
+            assert h.store.get(4242, version).push["status"] == "abandoned"
+        else:
+            h.run(30, until=lambda h: h.session.last_push.get("status") == "acked")
+            assert s.last_push["status"] == "acked" and s.last_push["version"] == version

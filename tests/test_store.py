@@ -437,3 +437,21 @@ def test_a_read_only_state_directory_at_start_is_a_fault_not_an_exit(tmp_path: P
     monkeypatch.setattr(Path, "mkdir", ro_mkdir)
     s = CalibrationStore(empty)
     assert s.read_only and "Read-only file system" in s.read_only and s.units() == []
+
+
+def test_each_fsync_of_a_write_feeds_the_watchdog_first(tmp_path: Path) -> None:
+    """On a disk taking 2-3 s per fsync, a record and its push result took 10.9 s and systemd's 10 s
+    watchdog would have killed the daemon mid-push (an operator's audit). The store calls its io beat
+    (the engine's rate-limited WATCHDOG=1) before every fsync."""
+    from gyrocal.daemon.store import set_io_beat
+
+    beats: list[int] = []
+    set_io_beat(lambda: beats.append(1))
+    try:
+        store = CalibrationStore(tmp_path)
+        rec = store.add(make_record())
+        first = len(beats)
+        store.update_push(rec.serial, rec.version, {"status": "acked"})
+    finally:
+        set_io_beat(None)
+    assert first >= 2 and len(beats) >= first + 2  # the file's and its directory's, each write

@@ -55,7 +55,7 @@ from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.daemon.session import Session, same_boot
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
-from gyrocal.daemon.store import CalibrationStore
+from gyrocal.daemon.store import CalibrationStore, set_io_beat
 from gyrocal.daemon.tempcheck import TEMP_MAX_C, TEMP_MIN_C, TemperatureCheck
 from gyrocal.drivers import open_link
 from gyrocal.errors import GyrocalError
@@ -139,6 +139,7 @@ class Engine(CommandsMixin):
         self.started = clock()
         self.dropped_nonfinite = 0
         self.temp_check = TemperatureCheck()  # daemon/tempcheck.py: temperatures no sensor reads
+        self._io_beat_at = -1e9  # monotonic [s] of the last watchdog ping from a store write
         self._temp_said: tuple[float, int] = (-1e9, 0)  # when the last WARNING of them was, and the count
         self.samples_before_hello = 0
         self.sessions_started = 0
@@ -188,6 +189,8 @@ class Engine(CommandsMixin):
 
     def open(self, wait: bool = True) -> None:
         """Open the link (``wait=False``: start without the unit; the reader thread keeps trying)."""
+        if self.cfg.watchdog and self.notifier.watchdog_interval_s() is not None:
+            set_io_beat(self._io_beat)  # a slow disk's fsyncs keep the watchdog fed (store.IO_BEAT)
         self._lock_state_dir()
         self._tidy_store()
         self.link = open_link(self._driver_cfg(), self.ring, self._on_control, self._on_event,
@@ -274,7 +277,18 @@ class Engine(CommandsMixin):
         except Exception as err:
             log.error("calibration store: unit %d: pruning old versions failed: %s", serial, err)
 
+    IO_BEAT_S = 1.0
+    """Least time [s] between two watchdog pings from the store's fsyncs."""
+
+    def _io_beat(self) -> None:
+        """WATCHDOG=1 from inside a store write: the loop waits on the disk, alive (store.IO_BEAT)."""
+        t = time.monotonic()
+        if t - self._io_beat_at >= self.IO_BEAT_S:
+            self._io_beat_at = t
+            self.notifier.watchdog()
+
     def close(self) -> None:
+        set_io_beat(None)
         self.notifier.stopping()
         s = self.session
         if s is not None and s.push is not None:  # its record stays 'pending' (nothing is lost)

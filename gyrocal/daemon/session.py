@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -184,6 +185,8 @@ class Session(RecoveryMixin):
 
     CHECK_EVERY_S = 0.25
     MAX_POSES = 64
+    SLOW_WRITE_S = 1.0
+    """A record write longer than this [s] defers its push until the samples of its time are read."""
     BIAS_MIN_S = 1.0
     """Seconds of still samples before a bias-only set may be pushed."""
     CONTRADICTED_MAX = 3
@@ -293,6 +296,7 @@ class Session(RecoveryMixin):
         self.unrecorded: list[tuple[int, dict[str, Any]]] = []  # push results the store could not take
         self.agreement: dict[str, Any] = {}
         self._retry: dict[str, Any] | None = None  # a transiently failed push to send again, same version
+        self._push_due: dict[str, Any] | None = None  # a set recorded by a slow store, pushed when caught up
         self._retry_round = 0
         self.request_read(now)
 
@@ -816,6 +820,11 @@ class Session(RecoveryMixin):
             if self.push.finished:
                 self._after_push(now)
             return
+        if self._push_due is not None:
+            if self.unit_clock_s >= self._push_due["heard"]:
+                due, self._push_due = self._push_due, None
+                self.start_push(due["version"], due["names"], due["coeffs"], now)
+            return
         if self.applied is None:
             if now >= self._read_deadline:
                 # a link that takes no sends is the link's fault, said once by _send: not the unit's
@@ -1142,6 +1151,7 @@ class Session(RecoveryMixin):
                         np.hypot(held_left, moved)[mask]
                     self._push_prediction[k] = _xyz_dph(v)
             self._push_prediction["kept_axes"] = kept
+        wrote_from, heard = time.monotonic(), self.unit_clock_s
         try:
             record = self._record(proj)
         except Exception as err:  # never push a set the store does not know
@@ -1163,6 +1173,19 @@ class Session(RecoveryMixin):
             block_var = self.learner.residual_var() / max(self.acc.size, 1)
             left = np.nan_to_num(self.prediction.get("left_sphere", np.zeros(3)), posinf=0.0)
             self.validated_rms = np.sqrt(rms_new**2 + block_var + left**2)
+        took = time.monotonic() - wrote_from
+        if took > self.SLOW_WRITE_S and np.isfinite(heard):
+            # the messages of those seconds are still queued behind the samples: the unit may have
+            # switched off and on meanwhile. Pushed at once, the last boot's set went to the new boot
+            # 1.0 s after its switch-on and ran for 17 s (an operator's slow-disk audit). It goes when
+            # the samples of the write's time are read, after any HELLO among them (a new session)
+            self._push_due = {"version": record["version"], "names": list(proj.held_names),
+                              "coeffs": proj.held_dps, "heard": heard + took}
+            self.state = State.PUSHING
+            self.reason = (f"v{record['version']} recorded in {took:.1f} s (a slow store): pushed once the "
+                           "unit's samples of that time are read")
+            log.info("unit %s: %s", self.hello.serial, self.reason)
+            return
         self.start_push(record["version"], list(proj.held_names), proj.held_dps, now)
 
     def _record(self, proj: Projection) -> dict[str, Any]:

@@ -71,6 +71,13 @@ class RecoveryMixin:
     def close(self, reason: str, now: float) -> None:
         """The session ends (a new switch-on, a recalibration): a push still under way is recorded as
         'abandoned' with the reason; the next read-back decides whether the unit applied it."""
+        due = getattr(self, "_push_due", None)
+        if due is not None:  # recorded by a slow store, never sent: the unit keeps its set
+            self._push_due = None
+            self.last_push = {"version": due["version"], "status": "abandoned", "utc": utc_now(),
+                              "reasons": [f"not sent: {reason} before the slow store's write was caught up"]}
+            log.info("unit %s: v%d not pushed: %s", self.hello.serial, due["version"], reason)
+            self._store_push(due["version"], dict(self.last_push), now)
         if self.push is not None:
             version = self.push.write.version
             self.push = None

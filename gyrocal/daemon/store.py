@@ -204,8 +204,28 @@ def _spans(versions: list[int]) -> str:
     return ", ".join(f"v{r[0]}" if len(r) == 1 else f"v{r[0]}-v{r[-1]}" for r in runs)
 
 
+IO_BEAT: list[Any] = []
+"""Called before each fsync (the daemon's watchdog keep-alive, ``set_io_beat``): a store on a slow disk
+(2-3 s per fsync) took 10.9 s for a record and its push result, and systemd's 10 s watchdog would have
+killed the daemon mid-push (an operator's audit). An fsync that hangs for good still stops the pings."""
+
+
+def set_io_beat(beat: Any) -> None:
+    """Install (or, with None, remove) the callable run before each fsync of the store."""
+    IO_BEAT[:] = [] if beat is None else [beat]
+
+
+def _beat() -> None:
+    for beat in IO_BEAT:
+        try:
+            beat()
+        except Exception:  # a keep-alive must never fail a write
+            log.debug("calibration store: io beat failed", exc_info=True)
+
+
 def _fsync_dir(path: Path) -> None:
     """Make a rename or a new entry in ``path`` durable (POSIX needs the directory synced too)."""
+    _beat()
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(fd)
@@ -226,6 +246,7 @@ def atomic_write_json(path: Path, obj: Any) -> None:
         with open(tmp, "wb") as fh:
             fh.write(data)
             fh.flush()
+            _beat()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException as err:
