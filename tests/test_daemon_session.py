@@ -784,6 +784,31 @@ def test_a_flapping_link_is_summed_up_once_a_minute(tmp_path: Path,
     assert len([r for r in caplog.records if r.levelno == logging.INFO]) == 3  # the first 3 returns
 
 
+def test_a_flapping_serial_port_s_reopen_failures_and_states_are_in_the_summary(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Each flap still logged "cannot be opened" (WARNING), WAIT_UNIT and back, and the set read again:
+    98 lines and 25 WARNINGs a minute (an operator's audit). While the link flaps, only the minute's
+    summary is above DEBUG."""
+    eng = _engine_with_stub_link(tmp_path)
+    gone = "serial port '/dev/x' cannot be opened ([Errno 2] No such file or directory); check ..."
+    with caplog.at_level(logging.DEBUG):
+        for k in range(120):  # 3 minutes, a loss, failed reopens and a return every 1.5 s
+            t = k * 1.5
+            eng.link.stats = lambda: {"connected": False, "target": "/dev/x"}
+            eng._on_link_event("link_lost", "/dev/x: gone", t)
+            eng._on_link_event("reconnecting", f"{gone}; next try in 0.5 s", t + 0.1)
+            eng._publish(t + 0.2)
+            eng.link.stats = lambda: {"connected": True, "target": "/dev/x"}
+            eng._on_link_event("link_up", "/dev/x", t + 0.5)
+            eng._publish(t + 0.6)
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO]
+    first = next(i for i, m in enumerate(said) if "times in the last 60 s" in m)
+    # the first 3 flaps are said in full (5 lines each); from the 4th loss on, only the summaries
+    assert first <= 15 and all("times in the last 60 s" in m for m in said[first:]), said[first:first + 5]
+    assert len(said[first:]) == 3
+
+
 def test_a_new_cause_of_a_down_link_is_said_and_shown(tmp_path: Path,
                                                       caplog: pytest.LogCaptureFixture) -> None:
     """After a replug, a second daemon took the port: the service's last line was the unplug's "No

@@ -549,13 +549,21 @@ class Engine(CommandsMixin):
     FLAP_SAY = 3
     """More link losses than this in FLAP_WINDOW_S [s]: one WARNING a minute, the rest at DEBUG."""
 
+    def _flapping(self, now: float) -> bool:
+        """More than FLAP_SAY link losses in the last FLAP_WINDOW_S [s]: a loose connector."""
+        while self._flaps and now - self._flaps[0] > self.FLAP_WINDOW_S:
+            self._flaps.popleft()
+        return len(self._flaps) > self.FLAP_SAY
+
     def _on_link_event(self, name: str, detail: str, now: float) -> None:
         if name == "reconnecting":  # every back-off round: one line when the state or its cause changes
             why = _COUNTS.sub("#", detail.split("; next try in")[0])
             first = self._link_state != "reconnecting" or why != self._reconnect_why
             # a cause that changes is said too: after a replug, a second daemon held the port, and the
-            # service's last line was still the unplug's "No such file" (a serial integrator's re-check)
-            log.log(logging.WARNING if first else logging.DEBUG, "waiting for the unit: %s", detail)
+            # service's last line was still the unplug's "No such file" (a serial integrator's re-check);
+            # while the link flaps, the minute's summary says it (20 WARNINGs a minute: an operator's audit)
+            log.log(logging.WARNING if first and not self._flapping(now) else logging.DEBUG,
+                    "waiting for the unit: %s", detail)
             self._link_state, self._reconnect_why = name, why
             self._reconnect_detail = detail.split("; ")[0]  # the cause, without the fix the log gives
             return
@@ -867,4 +875,5 @@ class Engine(CommandsMixin):
             kind = _COUNTS.sub("#", line)
             if kind != self._last_logged_kind:
                 self._last_logged_kind = kind
-                log.info("%s", line)
+                # a flapping link's WAIT_UNIT and back, every flap: the minute's summary says it
+                log.log(logging.DEBUG if self._flapping(now) else logging.INFO, "%s", line)

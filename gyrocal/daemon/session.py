@@ -407,8 +407,11 @@ class Session(RecoveryMixin):
             log.warning("unit %s: it holds v%d, which takes effect at its next reboot", self.hello.serial,
                         applied.version)
         if self.applied is None:
-            log.info("unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial,
-                     applied.version, applied.terms_id)
+            # said once a session; a read again after a reconnect or a failed push is DEBUG (a set that
+            # changed says so above): a flapping cable logged it at every flap (an operator's audit)
+            log.log(logging.INFO if before is None else logging.DEBUG,
+                    "unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial, applied.version,
+                    applied.terms_id)
             self.reason = self._refused_terms() or "collecting still samples"
         if self.applied is None:
             self._end_blind()  # a failed push's samples up to here: their set is not known
