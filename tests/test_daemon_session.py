@@ -948,3 +948,20 @@ def test_a_set_a_slow_store_took_seconds_to_record_is_not_pushed_to_the_next_boo
         else:
             h.run(30, until=lambda h: h.session.last_push.get("status") == "acked")
             assert s.last_push["status"] == "acked" and s.last_push["version"] == version
+
+
+def test_recalibrate_triggers_beside_a_switch_on_start_one_session(tmp_path: Path) -> None:
+    """A trigger wired to the switch-on (udev, an ignition line) lands beside the unit's own HELLO: two
+    sessions per switch-on; a storm of 100 triggers in 5 s started 100 (an operator's audit). A
+    recalibrate within RECALIBRATE_COALESCE_S of a session's start is served by that session."""
+    from gyrocal.daemon.commands import RECALIBRATE_COALESCE_S
+    from gyrocal.protocol.messages import Hello
+
+    eng = _engine_with_stub_link(tmp_path)
+    eng._on_message(Hello(77, "1.0", 1, 200), 0.0)
+    assert eng.sessions_started == 1
+    reply = eng._command({"cmd": "recalibrate"}, 0.5)
+    assert reply["ok"] and "serves this request" in reply["message"] and eng.sessions_started == 1
+    for k in range(100):  # a storm: 100 in 5 s
+        assert eng._command({"cmd": "recalibrate"}, 3.0 + 0.05 * k)["ok"]
+    assert eng.sessions_started == 1 + int(np.ceil(5.0 / RECALIBRATE_COALESCE_S))

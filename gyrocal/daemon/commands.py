@@ -23,6 +23,10 @@ from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
 from gyrocal.errors import ConfigError
 from gyrocal.protocol import termsets
 
+RECALIBRATE_COALESCE_S = 2.0
+"""A recalibrate this soon [s] after a session started (a switch-on's HELLO, another recalibrate) is
+served by that session: no second one."""
+
 log = logging.getLogger("gyrocal.engine")
 
 
@@ -57,7 +61,14 @@ class CommandsMixin:
             if cmd == "recalibrate":
                 if self.last_hello is None:
                     return {"ok": False, "error": "no unit has announced itself (HELLO) yet"}
-                guess = None if self.session is None else self.session.unconfirmed
+                s = self.session
+                if s is not None and now - s.started < RECALIBRATE_COALESCE_S:
+                    # a trigger wired to the switch-on (udev, an ignition line) lands beside the unit's own
+                    # HELLO, which starts the session already: two sessions per switch-on, and a storm of
+                    # 100 triggers 100 sessions in 5 s (an operator's audit). One session answers them all
+                    return {"ok": True, "message": f"a session started {now - s.started:.1f} s ago (boot "
+                                                   f"{s.hello.boot_count}): it serves this request"}
+                guess = None if s is None else s.unconfirmed
                 self._start_session(self.last_hello, now)
                 self.session.unconfirmed = guess  # still no HELLO from the unit since its restart
                 return {"ok": True, "message": "new calibration session started"}
