@@ -413,7 +413,6 @@ class Session(RecoveryMixin):
                     "unit %s holds calibration v%d (terms id 0x%04x)", self.hello.serial, applied.version,
                     applied.terms_id)
             self.reason = self._refused_terms() or "collecting still samples"
-        if self.applied is None:
             self._end_blind()  # a failed push's samples up to here: their set is not known
         self.applied = applied
         self._read_asks = 0
@@ -537,8 +536,7 @@ class Session(RecoveryMixin):
         if not blind.any():
             return still
         self.blind_samples += int(blind.sum())
-        self.acc.discard_partial()  # a block must not reach across the window
-        return still & ~blind
+        return still & ~blind  # not still: the block being filled ends before the window (blocks.py)
 
     def _cold_bias_check(self) -> str:
         """Let a cold start whose data has stopped adding directions learn its constant alone

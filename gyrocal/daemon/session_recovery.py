@@ -50,6 +50,7 @@ class RecoveryMixin:
     _read_deadline: float
     _store_retry_at: float
     _retry: Any
+    _push_due: Any = None
     _disagreement_said: str | None = None
 
     def _forget_set(self) -> None: ...  # Session's: the unit's set is unknown until read again
@@ -71,7 +72,7 @@ class RecoveryMixin:
     def close(self, reason: str, now: float) -> None:
         """The session ends (a new switch-on, a recalibration): a push still under way is recorded as
         'abandoned' with the reason; the next read-back decides whether the unit applied it."""
-        due = getattr(self, "_push_due", None)
+        due = self._push_due
         if due is not None:  # recorded by a slow store, never sent: the unit keeps its set
             self._push_due = None
             self.last_push = {"version": due["version"], "status": "abandoned", "utc": utc_now(),
