@@ -341,9 +341,15 @@ def test_a_bias_stage_records_the_held_set_s_range_and_carries_the_information_s
     s.temp_seen = (40.0, 50.0)
     s._held_info = lambda: (None, (20.0, 35.0), None)
     s.last_validation = {"stage": "bias"}
-    assert s._set_range() == [20.0, 35.0] and s.temp_range() == [40.0, 50.0]
+    held = np.array([[1e-3, 2e-4, 1e-6], [2e-3, -3e-4, 2e-6], [-1e-3, 1e-4, -1e-6]])
+    s._applied_coeffs = lambda: held
+    new = SimpleNamespace(embedded_dps=held * 1.1)
+    assert s._set_range(new) == [20.0, 35.0] and s.temp_range() == [40.0, 50.0]
     s.last_validation = {"stage": "full"}
-    assert s._set_range() == [40.0, 50.0]
+    assert s._set_range(new) == [40.0, 50.0]
+    kept_y = held * 1.1
+    kept_y[1] = held[1]  # a refinement that keeps the held rows on y: y's terms are the held set's
+    assert s._set_range(SimpleNamespace(embedded_dps=kept_y)) == [20.0, 35.0]
     cfg = _cfg(tmp_path)
     rng = np.random.default_rng(5)
     phi, y = _session_data(np.linspace(20.0, 40.0, 2000), np.zeros(3), np.zeros((3, 3)), rng)

@@ -73,12 +73,12 @@ from gyrocal.daemon import refine
 from gyrocal.daemon.blocks import BlockAccumulator, BlockWindow
 from gyrocal.daemon.capabilities import PROTOCOL, Projection, UnitCapabilities, project
 from gyrocal.daemon.earth_track import EarthTrack
-from gyrocal.daemon.learner import Learner
+from gyrocal.daemon.learner import Learner, temp_indices
 from gyrocal.daemon.poses import PoseLog
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
 from gyrocal.daemon.reconcile import record_crc
 from gyrocal.daemon.session_recovery import RecoveryMixin
-from gyrocal.daemon.store import CalibrationRecord, utc_now
+from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
 from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
@@ -774,7 +774,7 @@ class Session(RecoveryMixin):
         if rec is None:  # a set this daemon never recorded (factory, another tool): stays unknown
             self._held_cache[a.version] = (None, None, None)
             return None, None, None
-        if rec.push.get("status") != "acked":
+        if rec.push.get("status") not in APPLIED_STATUSES:  # a set acked, or applied with its ack lost
             return None, None, None  # not cached: an ack the store could not record yet may come later
         left: np.ndarray | None = None
         rng: tuple[float, float] | None = None
@@ -1127,15 +1127,6 @@ class Session(RecoveryMixin):
         if "unseen_share" in self.prediction:
             self._push_prediction["unseen_share"] = round(float(self.prediction["unseen_share"]), 4)
         self._push_prediction["stage"] = stage
-        if (stage == "bias" and self.learner.cold_ready) or _constant_only(proj.held_names, proj.held_dps):
-            # a constant alone, every other term 0 (a unit at one pose, a board at one temperature):
-            # good where the unit was seen, unknown elsewhere. Its sphere figure said 1.02 deg/h where
-            # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit).
-            # So at every later switch-on still at that pose: its bias stage and refinements, kept
-            # from the held constant-only set, said 0.72 then 0.22 deg/h over the sphere where the
-            # unit left 76/23/26 away from its pose (an integrator's CAN campaign)
-            nan = _xyz_dph(np.full(3, np.nan))
-            self._push_prediction.update(left_sphere=nan, bound=nan, expected=nan, constant_only=True)
         if kept:  # those axes hold the held set's rows: its own prediction, where its record has one,
             # with the bias movement left in place (a kept axis's bound was half its truth: an audit)
             held_left = self._held_info()[0]
@@ -1152,6 +1143,16 @@ class Session(RecoveryMixin):
                         np.hypot(held_left, moved)[mask]
                     self._push_prediction[k] = _xyz_dph(v)
             self._push_prediction["kept_axes"] = kept
+        if (stage == "bias" and self.learner.cold_ready) or _constant_only(proj.held_names, proj.held_dps):
+            # a constant alone, every other term 0 (a unit at one pose, a board at one temperature):
+            # good where the unit was seen, unknown elsewhere. Its sphere figure said 1.02 deg/h where
+            # the unit's drift over the sphere was 8.7/22.7/17.4 (a serial integrator's vehicle unit).
+            # So at every later switch-on still at that pose: its bias stage and refinements, kept
+            # from the held constant-only set, said 0.72 then 0.22 deg/h over the sphere where the
+            # unit left 76/23/26 away from its pose (an integrator's CAN campaign). After the kept
+            # axes: they had carried the held set's at-pose figure as their sphere one (a re-check)
+            nan = _xyz_dph(np.full(3, np.nan))
+            self._push_prediction.update(left_sphere=nan, bound=nan, expected=nan, constant_only=True)
         wrote_from, heard = time.monotonic(), self.unit_clock_s
         try:
             record = self._record(proj)
@@ -1207,7 +1208,7 @@ class Session(RecoveryMixin):
                    # switch-ons' merged; a bias stage keeps the held set's terms, so its range), and
                    # the information on those terms for the next switch-on with the range it spans
                    # (learner.py)
-                   "temp_range_c": self._set_range(),
+                   "temp_range_c": self._set_range(proj),
                    "temp_information": self.learner.temp_information(),
                    "temp_information_range_c": self.temp_range()},
             session={"boot_count": self.hello.boot_count, "fw": self.hello.fw_version},
@@ -1216,17 +1217,24 @@ class Session(RecoveryMixin):
         rec = self.store.add(rec, min_version=self.version_floor())
         return {"version": rec.version}
 
-    def _set_range(self) -> list[float] | None:
+    def _set_range(self, proj: Projection) -> list[float] | None:
         """The range [degC] the set about to be recorded holds its temperature terms for: a bias stage's
-        are the held set's, so is its range. Recorded as the range seen, a year of bias stages widened
-        it to -25..70 degC over terms learnt at 19..38, and the refinement that the wider range calls
-        for never came: 17.6/20.5/2.5 deg/h left in a winter warm-up where no temperature terms left
-        8.7/3.4/16.3 (a fleet engineer's year of switch-ons)."""
+        are the held set's, and so are those of a set that keeps the held rows on an axis; so is its
+        range. Recorded as the range seen, a year of bias stages widened it to -25..70 degC over terms
+        learnt at 19..38, and the refinement that the wider range calls for never came: 17.6/20.5/2.5
+        deg/h left in a winter warm-up where no temperature terms left 8.7/3.4/16.3 (a fleet engineer's
+        year of switch-ons; its re-check found the kept rows and a held set whose ack was lost)."""
         rng = self.temp_range()
+        held = self._held_info()[1]
+        if held is None:
+            return rng
         if self.last_validation.get("stage") == "bias":
-            held = self._held_info()[1]
-            if held is not None:
-                return [held[0], held[1]]
+            return [held[0], held[1]]
+        applied, idx = self._applied_coeffs(), temp_indices(list(self.names))
+        new = np.asarray(proj.embedded_dps, dtype=float)
+        if applied is not None and idx and new.shape == applied.shape \
+                and np.any(np.all(new[:, idx] == applied[:, idx], axis=1)):
+            return [held[0], held[1]]  # an axis keeps the held set's temperature terms
         return rng
 
     def temp_range(self) -> list[float] | None:
