@@ -219,6 +219,17 @@ def test_a_second_daemon_does_not_take_the_port_at_a_replug(tmp_path: Path, monk
             assert wait_for(lambda: a.connected and ring_a.pushed > 50)
             b.start(wait=False)
             assert wait_for(lambda: any("claimed by another gyrocal daemon" in e for e in rec_b.events))
+            # a daemon that names the device itself, not the udev symlink (took it once in 6 replugs:
+            # an operator's re-check)
+            said: list[str] = []
+            c = SerialLink(__import__("os").path.realpath(link_path), RingBuffer(100), lambda m: None,
+                           lambda n, d: said.append(d), **kw)
+            c.start(wait=False)
+            try:
+                assert wait_for(lambda: any("claimed by another gyrocal daemon" in e for e in said))
+                assert not c.connected
+            finally:
+                c.stop()
         assert wait_for(lambda: "link_lost" in rec_a.events)
         before = ring_a.pushed
         with SimProcess("--rate", "300", "--pty-link", str(link_path), tmp_path=tmp_path):  # the replug

@@ -81,6 +81,7 @@ class SerialLink(Link):
         self._decoder = FrameDecoder()
         self._bytes_sent = 0
         self._claim: IO[str] | None = None
+        self._dev_claim: tuple[str, IO[str]] | None = None  # (device path, its lock) behind the url
         self._claim_said = False
 
     @property
@@ -88,16 +89,39 @@ class SerialLink(Link):
         return self.url
 
     def _take_claim(self) -> None:
-        """Claim the port for this daemon's life, across unplugs: a lock on /run/lock/gyrocal-<path>.lock.
+        """Claim the port for this daemon's life, across unplugs: a lock on /run/lock/gyrocal-<path>.lock
+        for the configured path, and one for the device it names now (``/dev/ttyUSB0`` behind a udev
+        symlink), moved when a replug names another.
 
         Why: the exclusive open holds the port only while it is open. At a replug a second daemon
         (its own store, started by hand) could open the new tty first and calibrate the unit against
-        another store: the service then read a foreign set (an outside audit said it, not prevented).
-        A lock directory that cannot be written (a container without /run/lock) is said once, and the
-        exclusive open alone guards the port then."""
-        path = _claim_path(self.url)
-        if path is None or self._claim is not None:
+        another store: the service then read a foreign set (an outside audit said it, not prevented);
+        one that named the port otherwise (``/dev/ttyUSB0`` beside ``/dev/gyrocal-imu``) took it once
+        in 6 replugs (its re-check). A lock directory that cannot be written (a container without
+        /run/lock) is said once, and the exclusive open alone guards the port then."""
+        if self._claim is None:
+            path = _claim_path(self.url)
+            if path is None:
+                return
+            self._claim = self._lock(path)
+            if self._claim is None:
+                return
+        dev = os.path.realpath(self.url)
+        if dev == os.path.abspath(self.url) or not os.path.exists(dev):
             return
+        held = self._dev_claim
+        if held is not None and held[0] == dev:
+            return
+        path = _claim_path(dev)
+        fh = self._lock(path) if path is not None else None
+        if fh is not None:  # the device this path names now; the one it named before is let go
+            self._dev_claim = (dev, fh)
+            if held is not None:
+                self._unlock(held[0], held[1])
+
+    def _lock(self, path: Path) -> IO[str] | None:
+        """An exclusive lock on ``path`` (written with this pid), None where locks cannot be made;
+        LinkError when another daemon holds it."""
         try:
             fh = path.open("a+", encoding="utf-8")
         except OSError as err:
@@ -105,7 +129,7 @@ class SerialLink(Link):
                 log.info("serial %s: no port claim in %s (%s): the exclusive open alone guards the port",
                          self.url, path.parent, err.strerror or err)
                 self._claim_said = True
-            return
+            return None
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             same = os.fstat(fh.fileno()).st_ino == path.stat().st_ino
@@ -118,14 +142,22 @@ class SerialLink(Link):
                                 f"lock {path}): one daemon per port; stop it, this one takes the port when "
                                 "it is free") from None
             same = False
-        if not same:  # its holder removed it as we locked it (stop below): claimed at the next open
+        if not same:  # its holder removed it as we locked it (_unlock): claimed at the next open
             fh.close()
             raise LinkError(f"serial port {self.url!r}: its claim {path} was just released; taken next try")
         fh.seek(0)
         fh.truncate()
         fh.write(f"pid {os.getpid()}\n")
         fh.flush()
-        self._claim = fh
+        return fh
+
+    @staticmethod
+    def _unlock(name: str, fh: IO[str]) -> None:
+        """Removed while locked, then unlocked: a waiter checks that it locked the file still named."""
+        path = _claim_path(name)
+        if path is not None:
+            path.unlink(missing_ok=True)
+        fh.close()
 
     def start(self, wait: bool = True) -> None:
         try:
@@ -140,11 +172,11 @@ class SerialLink(Link):
 
     def _release_claim(self) -> None:
         claim, self._claim = self._claim, None
-        if claim is not None:  # removed while locked, then unlocked: a waiter checks it locked this file
-            path = _claim_path(self.url)
-            if path is not None:
-                path.unlink(missing_ok=True)
-            claim.close()
+        dev, self._dev_claim = self._dev_claim, None
+        if claim is not None:
+            self._unlock(self.url, claim)
+        if dev is not None:
+            self._unlock(dev[0], dev[1])
 
     def _open(self) -> None:
         self._take_claim()
