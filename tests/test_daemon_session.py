@@ -546,6 +546,13 @@ def test_a_link_just_back_is_not_called_silent_by_the_age_of_the_sample_before_t
     assert eng.status["state"] != "UNIT_SILENT"
     eng._publish(12.5)
     assert eng.status["state"] == "UNIT_SILENT"
+    # samples waiting in the ring: the unit speaks, the loop was held up (a 12 s store write on a slow
+    # disk made a healthy unit "silent": an operator's re-check)
+    from gyrocal.protocol.messages import Sample
+
+    eng.ring.push(Sample(0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 25.0), 12.9)
+    eng._publish(13.0)
+    assert eng.status["state"] != "UNIT_SILENT"
 
 
 def test_what_the_link_dropped_is_said_once_a_minute(tmp_path: Path,

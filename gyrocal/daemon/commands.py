@@ -62,10 +62,12 @@ class CommandsMixin:
                 if self.last_hello is None:
                     return {"ok": False, "error": "no unit has announced itself (HELLO) yet"}
                 s = self.session
-                if s is not None and now - s.started < RECALIBRATE_COALESCE_S:
-                    # a trigger wired to the switch-on (udev, an ignition line) lands beside the unit's own
+                if s is not None and now - s.started < RECALIBRATE_COALESCE_S and not s.last_push \
+                        and s.operator_hold is None:
+                    # a trigger wired to the switch-on (an ignition line) lands beside the unit's own
                     # HELLO, which starts the session already: two sessions per switch-on, and a storm of
-                    # 100 triggers 100 sessions in 5 s (an operator's audit). One session answers them all
+                    # 100 triggers 100 sessions in 5 s (an operator's audit). One young session that has
+                    # pushed nothing answers them all (after a push, a recalibrate asks for a new one)
                     return {"ok": True, "message": f"a session started {now - s.started:.1f} s ago (boot "
                                                    f"{s.hello.boot_count}): it serves this request"}
                 guess = None if s is None else s.unconfirmed

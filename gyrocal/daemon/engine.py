@@ -804,7 +804,10 @@ class Engine(CommandsMixin):
         # sample before an outage made a link just back "silent for 6 s": an operator's soak)
         up_for = now - self._link_up_at if self._link_up_at is not None else None
         silent = (connected and age is not None and age > SILENT_AFTER_S
-                  and (up_for is None or up_for > SILENT_AFTER_S))
+                  and (up_for is None or up_for > SILENT_AFTER_S)
+                  # samples in the ring not read yet: the unit speaks, this loop was held up (a store
+                  # write of 12 s on a slow disk made a healthy unit "silent": an operator's re-check)
+                  and len(self.ring) == 0)
         if silent and getattr(self.link, "holds_samples_in_push", False) and self.session is not None \
                 and self.session.push is not None and not self.session.push.finished:
             # an autopilot's link withholds the samples while it rewrites the compensation (they would
