@@ -1,5 +1,6 @@
 """Serial link: pyserial URLs in one process, and the virtual unit across processes over a pty pair."""
 
+import os
 import threading
 from pathlib import Path
 
@@ -222,7 +223,7 @@ def test_a_second_daemon_does_not_take_the_port_at_a_replug(tmp_path: Path, monk
             # a daemon that names the device itself, not the udev symlink (took it once in 6 replugs:
             # an operator's re-check)
             said: list[str] = []
-            c = SerialLink(__import__("os").path.realpath(link_path), RingBuffer(100), lambda m: None,
+            c = SerialLink(os.path.realpath(link_path), RingBuffer(100), lambda m: None,
                            lambda n, d: said.append(d), **kw)
             c.start(wait=False)
             try:
@@ -240,7 +241,7 @@ def test_a_second_daemon_does_not_take_the_port_at_a_replug(tmp_path: Path, monk
     finally:
         a.stop()
         b.stop()
-    assert f"pid {__import__('os').getpid()}" in " ".join(rec_b.events)
+    assert f"pid {os.getpid()}" in " ".join(rec_b.events)
 
 
 def test_a_port_is_claimed_in_run_lock_under_its_configured_path(monkeypatch) -> None:
