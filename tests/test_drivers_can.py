@@ -177,18 +177,25 @@ def test_free_udp_port_is_bindable() -> None:
         s.bind(("", port))
 
 
+def _looped_back_link(name: str) -> tuple[CanLink, str]:
+    """A CAN link on a virtual bus of its own that loops its sends back to it (receive_own_messages),
+    as udp_multicast does; returns it with the bus's channel name."""
+    channel = f"gyrocal-test-{name}-{threading.get_ident()}"
+    ring = RingBuffer(1000)
+    sink = Sink(ring)
+    link = open_link({"kind": "can", "bus": {"interface": "virtual", "channel": channel,
+                                             "receive_own_messages": True}}, ring,
+                     sink.on_control, sink.on_event)
+    return link, channel
+
+
 def test_another_hosts_frames_to_the_unit_are_counted_and_said(caplog: pytest.LogCaptureFixture) -> None:
     """Two daemons on one bus minted the same version for different sets and overwrote each other's
     pushes, and neither noticed (an integrator's fault campaign). Host-to-unit frames this link did
     not send are another host's: counted, and one WARNING says so. Its own looped-back frames are not."""
     from gyrocal.protocol.can_codec import CanCodec
 
-    channel = f"gyrocal-test-hosts-{threading.get_ident()}"
-    ring = RingBuffer(1000)
-    sink = Sink(ring)
-    link = open_link({"kind": "can", "bus": {"interface": "virtual", "channel": channel,
-                                             "receive_own_messages": True}}, ring,
-                     sink.on_control, sink.on_event)
+    link, channel = _looped_back_link("hosts")
     other = can.Bus(interface="virtual", channel=channel)
     try:
         assert wait_for(lambda: link.connected, 5)
@@ -211,12 +218,7 @@ def test_a_write_resent_many_times_is_never_taken_for_another_host() -> None:
     identical frames resent past the link's window of frames sent are still its own."""
     from gyrocal.drivers import can_link
 
-    channel = f"gyrocal-test-resend-{threading.get_ident()}"
-    ring = RingBuffer(1000)
-    sink = Sink(ring)
-    link = open_link({"kind": "can", "bus": {"interface": "virtual", "channel": channel,
-                                             "receive_own_messages": True}}, ring,
-                     sink.on_control, sink.on_event)
+    link, _ = _looped_back_link("resend")
     write = CoeffWrite(2, termsets.SEED000_ID, np.full((3, 10), 1e-3).tolist())
     try:
         assert wait_for(lambda: link.connected, 5)

@@ -172,8 +172,7 @@ def test_a_rejected_value_naks_and_the_old_set_stays(tmp_path: Path) -> None:
     with sim("px4", tmp_path, "--reject-param", "TC_G0_X2_1") as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 15)
             nak = col.of(CoeffNak)
@@ -187,10 +186,15 @@ def test_a_rejected_value_naks_and_the_old_set_stays(tmp_path: Path) -> None:
             link.stop()
 
 
-def push_into_a_reboot(link: MavlinkLink, col: Collector) -> None:
-    """Push v5 into an autopilot that reboots during it: NAKed BUSY, then the new boot's HELLO."""
+def streaming(link: MavlinkLink, col: Collector) -> None:
+    """The autopilot said who it is (HELLO) and has streamed more than 300 samples."""
     assert wait_for(lambda: col.of(Hello), 15)
     assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+
+
+def push_into_a_reboot(link: MavlinkLink, col: Collector) -> None:
+    """Push v5 into an autopilot that reboots during it: NAKed BUSY, then the new boot's HELLO."""
+    streaming(link, col)
     link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
     assert wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 20)
     assert not col.of(CoeffAck) and col.of(CoeffNak)[0].reason == NakReason.BUSY
@@ -200,8 +204,7 @@ def push_into_a_reboot(link: MavlinkLink, col: Collector) -> None:
 
 def push_v5_over_a_held_v4(link: MavlinkLink, col: Collector) -> None:
     """v4 pushed and acked, then v5 pushed into a fault that cuts it: NAKed."""
-    assert wait_for(lambda: col.of(Hello), 15)
-    assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+    streaming(link, col)
     link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
     assert wait_for(lambda: col.of(CoeffAck), 15)
     link.send(CoeffWrite(5, TEMP_POLY3_ID, Q * 1.5))
@@ -255,8 +258,7 @@ def test_a_write_resent_while_its_push_runs_gets_that_push_s_answer_not_busy(tmp
     with sim("px4", tmp_path, "--drop-param-values", "3") as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4", param_timeout_s=0.5)
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             assert link.capabilities.ack_within_s == 4 * 0.5 * 4
             link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
             assert not wait_for(lambda: col.of(CoeffAck) or col.of(CoeffNak), 1.0)  # still running
@@ -274,8 +276,7 @@ def test_a_link_stopped_mid_push_lets_the_push_end_first(tmp_path: Path) -> None
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
         stopped = False
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: link._push is not None and link._push.phase.value == "write", 10, 0.001)
             link.stop()
@@ -322,8 +323,7 @@ def test_a_rollback_goes_back_with_the_range_its_version_was_written_with(tmp_pa
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             link.send(CoeffWrite(5, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: col.of(CoeffAck), 15)
             assert wait_for(lambda: read_status(tmp_path / "ap.json")["params"]["INS_TCAL1_ENABLE"] == 1, 5)
@@ -525,8 +525,7 @@ def test_a_constant_alone_is_written_about_a_steady_temperature_and_a_curve_is_n
                     "--rise", "0", "--status-json", str(tmp_path / "ap.json"), tmp_path=tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="px4")
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             link.send(CoeffWrite(4, TEMP_POLY2_ID, Q[:, :3]))
             assert wait_for(lambda: col.of(CoeffNak), 15)
             assert col.of(CoeffNak)[0].reason == NakReason.OUT_OF_RANGE
@@ -588,8 +587,7 @@ def test_a_ground_station_s_write_of_the_compensation_is_reported_unasked(tmp_pa
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: col.of(CoeffAck), 15)
             enable = link.profile.enable
@@ -613,8 +611,7 @@ def test_an_ardupilot_learning_its_own_temperature_calibration_is_left_alone(tmp
     with sim("ardupilot", tmp_path) as ap:
         link, col, _ = open_link(ap.address, tmp_path, autopilot="ardupilot")
         try:
-            assert wait_for(lambda: col.of(Hello), 15)
-            assert wait_for(lambda: link.stats()["samples"] > 300, 15)
+            streaming(link, col)
             link.send(CoeffWrite(4, TEMP_POLY3_ID, Q))
             assert wait_for(lambda: col.of(CoeffNak), 10)
             assert col.of(CoeffNak)[0].reason == NakReason.BUSY and not col.of(CoeffAck)

@@ -571,9 +571,7 @@ class Engine(CommandsMixin):
         level = logging.INFO if name == "link_up" else logging.WARNING
         if name == "link_lost":
             self._flaps.append(now)
-        while self._flaps and now - self._flaps[0] > self.FLAP_WINDOW_S:
-            self._flaps.popleft()
-        if name in ("link_lost", "link_up") and len(self._flaps) > self.FLAP_SAY:
+        if name in ("link_lost", "link_up") and self._flapping(now):
             # a loose connector: 5-10 lines and 1-3 WARNINGs per flap, 58k WARNINGs a day at one flap
             # every 1.5 s (an operator's audit). One WARNING a minute sums it up; each flap at DEBUG
             level = logging.DEBUG
