@@ -359,3 +359,56 @@ def test_a_bias_stage_records_the_held_set_s_range_and_carries_the_information_s
                             stats={"temp_information": first.temp_information(), "temp_range_c": [20.0, 35.0],
                                    "temp_information_range_c": [20.0, 50.0]})
     assert Learner(cfg, prior, 250.0).prior_range == (20.0, 50.0)
+
+
+# -- a cold start whose warm-up cannot separate the rate terms (held_zero.py) -------------------------
+def _extended_harness(tmp: Path) -> Harness:
+    """A tumbling unit with the built-in 14-term set 0x549E (seed 000 + temp, temp^2, dtemp,
+    temp*dtemp), warming 18 -> 38 degC (tau 50 s) at its first switch-on, whose drift is a quadratic
+    in temperature: a fleet engineer's factory tumble."""
+    from gyrocal.protocol.termsets import EXTENDED_TEMP_TERMS
+    from gyrocal.sim.schedule import tumble
+
+    effects = Effects(temp_dps_per_c=np.array([3e-4, -2e-4, 2.5e-4]),
+                      temp2_dps_per_c2=np.array([3e-6, 2e-6, -2e-6]), temp_ref_c=25.0)
+    truth = TruthModel(thermal=Thermal(ambient_c=18.0, rise_c=20.0, tau_s=50.0), effects=effects)
+    cfg = load_config(None, {"state_dir": str(tmp / "state"), "control_socket": str(tmp / "c.sock"),
+                             "estimator.terms": list(EXTENDED_TEMP_TERMS)})
+    unit = VirtualUnit(truth, tumble(1.2, 0.4), RATE_HZ, 1, 4242)
+    unit.ambients_c = (18.0, 5.0)
+    return Harness(cfg, unit, CalibrationStore(cfg.state_dir))
+
+
+def test_a_warm_up_tumble_that_cannot_separate_the_rate_terms_is_calibrated_with_them_held_at_0(
+        tmp_path: Path) -> None:
+    """One first-order warm-up makes dtemp a straight line in temp (and temp*dtemp one in temp and
+    temp^2): the 14-term set stopped at rank 12 of 13 on a whole 150 s factory tumble, and such a unit
+    was never calibrated (18 switch-ons with no set, then a constant alone: a fleet engineer's year).
+    Now the rate terms are held at 0 and the rest learnt; the next warm-up, from another ambient,
+    separates them."""
+    h = _extended_harness(tmp_path)
+    h.switch_on()
+    raw = h.unit.status()["drift_rms_raw_dps"]
+    h.run(150)
+    s = h.session
+    assert s is not None and s.learner.rank < s.learner.full_rank  # what the warm-up cannot separate
+    acked = _acked(h.store)
+    assert acked, s.reason
+    rec = h.store.get(4242, acked[-1])
+    assert rec is not None and rec.identifiable["held_zero"] == ["dtemp", "temp*dtemp"], rec.identifiable
+    c = np.asarray(rec.coefficients_dps)
+    assert np.all(c[:, 12:] == 0.0) and np.all(np.isnan(np.asarray(rec.uncertainty_dps, dtype=float)[:, 12:]))
+    # the level terms are the unit's thermal curve (in raw temp: a + b (T - 25) + q (T - 25)^2)
+    e = h.unit.truth.effects
+    slope, curve = e.temp_dps_per_c - 2 * 25.0 * e.temp2_dps_per_c2, e.temp2_dps_per_c2
+    assert np.all(np.abs(c[:, 10] - slope) < 0.15 * np.abs(slope)), (c[:, 10] * DPH, slope * DPH)
+    assert np.all(np.abs(c[:, 11] - curve) < 0.3 * np.abs(curve)), (c[:, 11] * DPH, curve * DPH)
+    after = h.unit.status()["drift_rms_compensated_dps"]
+    for a in "xyz":
+        assert after[a] * 20 <= raw[a], (a, raw[a] * DPH, after[a] * DPH)
+    # the next switch-on warms from 5 degC: with the first warm-up's information, every term is learnt
+    h.switch_on()
+    h.run(150)
+    last = h.store.latest(4242, acked_only=True)
+    assert last is not None and last.version > rec.version
+    assert last.identifiable["rank"] == 13 and "held_zero" not in last.identifiable, last.identifiable

@@ -24,6 +24,14 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
   (``cold_ready``), the bias-only stage runs against a zero set: its constant term is the mean drift,
   every other term 0. That is right at the temperature and the pose seen, and no worse elsewhere than
   the bias it removes is; a full set follows when the data reaches the rank (a tumble, a warm-up).
+- **A cold start that cannot separate its temperature terms: those held at 0.** One first-order
+  warm-up makes dtemp a straight line in temp, so seed 000 + temp, temp^2, dtemp, temp*dtemp stops
+  at rank 12 of 13 on a whole factory tumble. Once the session says the rank has stalled
+  (session.py, ``HOLD_STALL_S``: ``may_hold``) and every gravity direction is determined, the terms
+  the data cannot separate are held at 0 and the rest is an ordinary least-squares fit
+  (model/held_zero.py): ``coefficients``, ``uncertainty``, ``prediction`` and the convergence rule's
+  rank all read the restricted system. The next switch-on, warm-started, learns the held terms once
+  its warm-up and the one carried in the record separate them.
 - **Predicted drift.** What the user cares about is the drift a set leaves in the output, not the
   1-sigma of each coefficient. ``prediction`` gives the standard error of the set's prediction
   c^T phi, RMS over the poses seen and over the sphere, from the estimator's covariance:
@@ -47,6 +55,7 @@ It wraps gyrocal.model's estimators with the two decisions that belong to the da
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 from typing import Any
 
@@ -55,6 +64,7 @@ import numpy as np
 from gyrocal.daemon.capabilities import learnt_set
 from gyrocal.model.bias_kalman import load_bias_spec
 from gyrocal.model.convergence import ConvergenceConfig
+from gyrocal.model.held_zero import HeldZero, find_held
 from gyrocal.model.identifiability import rank_aware_solve
 from gyrocal.model.methods import make_estimator
 from gyrocal.model.terms import TermSpec
@@ -71,7 +81,7 @@ def temp_indices(names: list[str]) -> list[int]:
     return [i for i, t in enumerate(spec.terms) if t.atoms and t.atoms <= TEMP_ATOMS]
 
 
-@lru_cache(maxsize=16)
+@lru_cache(maxsize=512)
 def structural_rank(names: tuple[str, ...]) -> int:
     """The largest rank the terms can reach on a still unit: gravity on the unit sphere [g].
 
@@ -131,6 +141,10 @@ class Learner:
         cold = prior_c is None and self.const is not None and len(self.names) > 1
         self._zero = np.zeros((3, len(self.names))) if cold else None
         self.cold_ready = False
+        # a cold start whose rank stalled short of the structural rank with every gravity direction
+        # determined holds at 0 the terms the data cannot separate, once the session sets may_hold
+        # (held_zero.py, and the module docstring)
+        self.may_hold = False
         # the session owes the unit its bias stage (the store could not record it): the stage stays
         # bias-only past full rank until it is pushed, as it would have been at the first still second
         self.owe_bias = False
@@ -269,7 +283,27 @@ class Learner:
     def bias_only(self) -> bool:
         """True while a warm start lacks the excitation for a full update (see the module docstring)."""
         return (self._base is not None and self.const is not None and self._n > 0
-                and (self.owe_bias or self._identifiability().rank < self.full_rank))
+                and (self.owe_bias or (self._identifiability().rank < self.full_rank
+                                       and self.held_zero is None)))
+
+    @property
+    def held_zero(self) -> HeldZero | None:
+        """The terms a stalled cold start holds at 0 (``may_hold``, held_zero.py), or None."""
+        if not self.may_hold or self.prior is not None or self.est.method not in INFO_METHODS:
+            return None
+        return self._cached("held", self._find_held)
+
+    def allow_hold(self) -> None:
+        """The session's word that the rank has stalled (``may_hold``): reads are computed again."""
+        self.may_hold = True
+        self._version += 1
+
+    def _find_held(self) -> HeldZero | None:
+        ident = self._identifiability()
+        if ident.rank >= self.full_rank or ident.rank == 0:
+            return None
+        return find_held(self.est._totals()[0], self.est.norm.M, self.names, ident.undetermined_terms,
+                         structural_rank, self.est.rank_tol)
 
     def _identifiability(self) -> Any:
         return self._cached("ident", lambda: self.est.identifiability)
@@ -285,6 +319,11 @@ class Learner:
             c = base.copy()
             c[:, self.const] += self._sum_res / self._n
             return c
+        held = self.held_zero
+        if held is not None:
+            c = self.est._physical(self._cached("solve", self._solve)[0])
+            c[:, held.mask] = 0.0
+            return c
         return self._cached("coefficients", lambda: self.est.coefficients).copy()
 
     @property
@@ -294,6 +333,16 @@ class Learner:
             mean = self._sum_res / self._n
             var = np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
             sig[:, self.const] = np.sqrt(var / self._n)
+            return sig
+        held = self.held_zero
+        if held is not None:  # the kept terms' own 1-sigma; a term held at 0 is not determined
+            _, var, lam_r, v_r, v_n = self._cached("solve", self._solve)
+            m = self.est.norm.M
+            g = m.T @ v_r
+            sig = np.sqrt(var)[:, None] * np.sqrt((g * g / lam_r).sum(axis=1))[None, :]
+            if v_n.size:
+                sig[:, np.abs(m.T @ v_n).max(axis=1) > 1e-6 * max(1.0, np.abs(m).max())] = np.inf
+            sig[:, held.mask] = np.inf
             return sig
         return self._cached("uncertainty", lambda: self.est.uncertainty).copy()
 
@@ -305,12 +354,29 @@ class Learner:
         return np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
 
     def identifiable(self) -> dict[str, Any]:
-        return self._identifiability().as_contract()
+        out = self._identifiability().as_contract()
+        held = self.held_zero
+        if held is not None:
+            out["held_zero"] = held.names(self.names)
+        return out
 
     @property
     def converged(self) -> tuple[bool, str]:
-        st = self._cached("convergence", self.est.convergence)
+        st = self._cached("convergence", self._convergence)
         return st.converged, st.reason
+
+    def _convergence(self) -> Any:
+        """The estimator's convergence rule; with terms held at 0, the rank needed is what the kept
+        terms can reach (the rank now, held_zero.py)."""
+        est = self.est
+        if self.held_zero is None:
+            return est.convergence()
+        conv = est.conv
+        est.conv = replace(conv, min_rank=min(conv.min_rank, self.rank))
+        try:
+            return est.convergence()
+        finally:
+            est.conv = conv
 
     def state(self) -> dict[str, Any]:
         return self.est.state()
@@ -342,7 +408,7 @@ class Learner:
             inf = np.full(3, np.inf)
             return {"left_poses": inf, "left_sphere": inf.copy(), "removes": removes, "stage": "full"}
         est = self.est
-        var, lam_r, v_r, v_n = self._cached("solve", self._solve)
+        _, var, lam_r, v_r, v_n = self._cached("solve", self._solve)
 
         def rms_se(phi: np.ndarray, null_test: bool) -> np.ndarray:
             z = phi @ est.norm.M.T  # (K, P) normalised terms
@@ -369,15 +435,20 @@ class Learner:
         floor = np.asarray(f(over_s), dtype=float)
         return floor if np.any(floor > 0) else None
 
-    def _solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Residual variance (3,) [deg/s^2] and the eigen-split of R, for the predicted drift."""
+    def _solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Normalised weights (P, 3), residual variance (3,) [deg/s^2] and the eigen-split of R they
+        were solved with (with terms held at 0: of R restricted to the weights that keep them 0)."""
         est = self.est
         R, b, q, neff = est._totals()
-        w, lam_r, v_r, v_n = rank_aware_solve(R, b, est.w0, est.rank_tol)
+        held = self.held_zero
+        if held is None:
+            w, lam_r, v_r, v_n = rank_aware_solve(R, b, est.w0, est.rank_tol)
+        else:
+            w, lam_r, v_r, v_n = held.solve(R, b, est.rank_tol)
         rss = np.maximum(q - 2 * (w * b).sum(axis=0) + (w * (R @ w)).sum(axis=0), 0.0)
         dof = neff - lam_r.size
         var = rss / dof if dof > 0 else np.full(3, np.inf)
-        return var, lam_r, v_r, v_n
+        return w, var, lam_r, v_r, v_n
 
     def _inflation(self, blocks: Any, var: np.ndarray, est: Any, v_r: np.ndarray,
                    lam_r: np.ndarray) -> np.ndarray:

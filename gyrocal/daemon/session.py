@@ -197,6 +197,11 @@ class Session(RecoveryMixin):
     [s] of unit time (the rank unchanged; with temperature terms, the still samples' temperature also
     within +-STEADY_BAND_C [degC]) and the unit holds no set beyond a constant (learner.py, "A cold
     start that stops learning"): a heated IMU, and a unit mounted at one pose, were never calibrated."""
+    HOLD_STALL_S = 30.0
+    """A cold start whose rank has not grown for this long [s of unit time], short of the structural
+    rank, holds at 0 the terms its data cannot separate, when every other term is determined
+    (model/held_zero.py): the built-in set 0x549E stops at rank 12 of 13 on a whole warm-up tumble, and
+    such a unit was never calibrated (a fleet engineer's year: 18 switch-ons with no set)."""
     BIAS_MIN_CUT = 3.0
     """The bias stage pushes once the new bias is predicted to cut every axis's present drift this many
     times (or leave less than ``push.target_drift_dph``): it is a first step, which the full set refines.
@@ -266,6 +271,8 @@ class Session(RecoveryMixin):
         self._steady_from: tuple[float, float] | None = None  # (unit time [s], temp [degC]) of the band
         self._steady_s = 0.0  # how long [s] the temperature has stayed in that band (STEADY_S)
         self._rank_since: tuple[int, float] = (-1, float("nan"))  # (rank, unit time [s] it was reached)
+        self._range_pushed: tuple[float, float] | None = None  # temp_seen [degC] at the last full set
+        self._held_said: list[str] = []  # the terms held at 0 that the log has named (HOLD_STALL_S)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
         # (from, to) unit time [s]: samples whose set is not known, from a push's first write to its ack,
@@ -551,14 +558,12 @@ class Session(RecoveryMixin):
             # enough drift (the gate)
             return ""
         rank = lr.rank
-        if rank >= lr.full_rank:
-            # the data has reached the rank: a full set is what is held back (by the store, the gate);
-            # "learning its constant alone ... until the data reaches the rank" was said at rank 9 of 9,
-            # before a full set was pushed (an operator's audit)
+        if rank >= lr.full_rank or lr.held_zero is not None:
+            # the data has reached the rank (or that of the terms not held at 0): a full set is what is
+            # held back (by the store, the gate); "learning its constant alone ... until the data
+            # reaches the rank" was said at rank 9 of 9, before a full set was pushed (an operator's audit)
             return ""
-        if rank != self._rank_since[0]:
-            self._rank_since = (rank, self._t_last)
-        stalled = self._t_last - self._rank_since[1]
+        stalled = self._rank_stalled()
         waits = [] if stalled >= self.STEADY_S else [f"no new direction learnt for {stalled:.0f} s"]
         if self._has_temp and self._steady_s < self.STEADY_S:
             waits.append(f"the temperature within {self.STEADY_BAND_C:g} degC for {self._steady_s:.0f} s")
@@ -573,6 +578,42 @@ class Session(RecoveryMixin):
                  "holds no set: learning its constant alone, every other term 0, until the data reaches "
                  "the rank", self.hello.serial, stalled, rank, lr.full_rank, len(self.poses), seen)
         return ""
+
+    def _rank_stalled(self) -> float:
+        """How long [s of unit time] the learner's rank has stayed what it is now."""
+        rank = self.learner.rank
+        if rank != self._rank_since[0]:
+            self._rank_since = (rank, self._t_last)
+        return self._t_last - self._rank_since[1]
+
+    def _hold_check(self) -> None:
+        """Let a cold start whose rank stalled short of the structural rank hold at 0 the terms its
+        data cannot separate (HOLD_STALL_S), and say which, once each time they change."""
+        lr = self.learner
+        if lr.prior is not None or lr.samples == 0:
+            return
+        stalled = self._rank_stalled()
+        if not lr.may_hold:
+            if lr.rank >= lr.full_rank or stalled < self.HOLD_STALL_S:
+                return
+            lr.allow_hold()
+        held = lr.held_zero
+        if held is None:  # the rank grew: to the full one, or to one no choice of terms fits yet
+            if self._held_said and lr.rank >= lr.full_rank:
+                log.info("unit %s: rank %d of %d: every term is learnt now", self.hello.serial, lr.rank,
+                         lr.full_rank)
+                self._held_said = []
+            return
+        names = held.names(self.names)
+        if names == self._held_said:
+            return
+        ident = lr.identifiable()
+        log.info("unit %s: rank %d of %d, no new direction for %.0f s: the data cannot separate %s "
+                 "(on the data: %s); learning the set with %s held at 0 until a later warm-up "
+                 "separates them", self.hello.serial, lr.rank, lr.full_rank, stalled,
+                 ", ".join(ident["undetermined_terms"]), "; ".join(f"{u} = 0" for u in ident["undetermined"]),
+                 ", ".join(names))
+        self._held_said = names
 
     def heard(self, t_unit: float) -> None:
         """The unit's clock [s] as of the newest sample heard. The engine calls it before the still
@@ -678,7 +719,13 @@ class Session(RecoveryMixin):
         held_left, held_range, held_kept = (None, None, None) if bias else self._held_info()
         settled = refine.settled(self._trate.value, self._peak_trate)
         edge = settled and self._edge_costs(held_range, cut)
-        wide = refine.widened(held_range, self.temp_seen, settled, edge)
+        # widened past the held set's range, and past the range this session's last full set was pushed
+        # over: a refinement that keeps the held rows on an axis records the held set's range, and a
+        # warm-up pushed every 10 s, each push widened past that range again (a 0x549E unit)
+        pushed = self._range_pushed
+        ref = held_range if held_range is None or pushed is None else \
+            (min(held_range[0], pushed[0]), max(held_range[1], pushed[1]))
+        wide = refine.widened(ref, self.temp_seen, settled, edge)
         if wide and held_left is not None:
             # beyond its own range the held set leaves what it leaves there, not its recorded figure
             # (4.5 deg/h credited where an ArduPilot clamping above TMAX was left 600 deg/h off, and a
@@ -923,6 +970,7 @@ class Session(RecoveryMixin):
         if self.range_hold is not None:
             self.reason = self.range_hold
             return
+        self._hold_check()
         waits = self._cold_bias_check()
         if self._bias_stage_due():
             self._push_bias(now)
@@ -1324,6 +1372,8 @@ class Session(RecoveryMixin):
                                       "a pushed set only after its next reboot"}
                 log.warning("unit %s: v%d is held; it takes effect at the unit's next reboot",
                             self.hello.serial, version)
+            if (self.last_push.get("predicted_drift_dph") or {}).get("stage") == "full":
+                self._range_pushed = self.temp_seen  # a widening counts from here (_gate)
             self.state = State.APPLIED  # the samples switch to the new set at the ack (see feed)
             self._held_has_north = False
             self._range_naks = 0
