@@ -86,6 +86,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "still": {
         "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
         "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
+        "k_turn": ((int, float), 5.0, "write the multiple of the unit's quiet gravity turn, > 1"),
         "margin_s": ((int, float), 0.1, "write the seconds cut from each end of a still stretch"),
         "min_run_s": ((int, float), 0.5, "write the shortest still stretch kept, in seconds"),
         "learn_s": ((int, float), 1.0, "write the seconds after switch-on that teach the noise level"),
@@ -154,6 +155,7 @@ _RANGES: dict[str, Range] = {
     "monitor.alarm_floor_dps": Range(0, 10, unit="deg/s"),
     "still.window_s": _gt(0, 60, "s"),
     "still.k_std": _gt(1, 1000),
+    "still.k_turn": _gt(1, 1000),
     "still.margin_s": Range(0, 60, unit="s"),
     "still.min_run_s": _gt(0, 3600, "s"),
     "still.learn_s": _gt(0, 3600, "s"),

@@ -21,7 +21,7 @@ import numpy as np
 
 from gyrocal.model.still import StillRule, StreamingStill
 
-RULE_FIELDS = ("window_s", "k_std", "margin_s", "min_run_s", "learn_s", "memory_s")
+RULE_FIELDS = ("window_s", "k_std", "k_turn", "margin_s", "min_run_s", "learn_s", "memory_s")
 """The ``still`` config fields that map onto ``StillRule``."""
 
 RETIRED_FIELDS = {
