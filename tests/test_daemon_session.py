@@ -998,3 +998,24 @@ def test_a_road_drive_s_slow_pitch_and_roll_raise_no_drift_alarm(tmp_path: Path)
     # what validation sees is the unit's drift, not the turns (it read 378-478 deg/h)
     rms = s.last_validation.get("rms_current_dps") or {}
     assert rms and max(rms.values()) * 3600 < 5.0, rms
+
+
+def test_a_push_acked_whose_read_back_was_lost_is_recorded_acked_at_the_next_read(tmp_path: Path) -> None:
+    """The unit acked, then switched off before its read-back: the push ended readback_timeout, and at
+    the next switch-on the store called it 'applied (ack lost)', its own history saying the ack had
+    come (a fleet engineer's power cuts 50 ms after an ACK)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session is not None and h.session.push is not None)
+    h.unit.faults.no_coeff_read = True  # the ack comes; no COEFF_REPORT after it
+    h.run(30, until=_pushed)
+    s = h.session
+    assert s is not None and s.last_push["status"] == "readback_timeout", s.last_push
+    v = s.last_push["version"]
+    h.unit.faults.no_coeff_read = False
+    h.switch_on()
+    h.run(3)
+    rec = h.store.get(4242, v)
+    assert rec is not None and rec.push["status"] == "acked" and rec.push["readback_ok"], rec.push
+    assert rec.push["history"][-1]["status"] == "readback_timeout"
+    assert h.session is not None and h.session.agreement["agree"]

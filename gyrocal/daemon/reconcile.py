@@ -12,7 +12,8 @@ every push's read-back; and at daemon start for the store alone):
 - a report whose CRC matches a stored version of this unit that is not already marked applied
   ('pending', 'timeout', 'nak', 'link_down', 'abandoned', ...) marks that version
   ``applied_ack_lost``: the unit verifiably holds it, although the push never saw its ack. The old
-  status and the time are kept in ``push.history``, so nothing that happened is erased;
+  status and the time are kept in ``push.history``, so nothing that happened is erased. A push that
+  saw its ack (its ``acked_crc`` the report's) and ended ``readback_timeout`` becomes ``acked``;
 - a report whose version is stored but whose CRC differs is a disagreement: reported in status and
   logged once, never "fixed" by rewriting the record (the unit may hold a set another tool wrote);
 - on a unit that measures its own bias at boot (``own_boot_bias``: ArduPilot's gyro calibration),
@@ -133,13 +134,23 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
                          f"the unit holds v{version}, as the store says{boot_note}", own)
     history = list(rec.push.get("history") or [])
     history.append({"status": status, "reasons": rec.push.get("reasons"), "until_utc": utc_now()})
+    # a push whose ack came and whose read-back did not (the unit switched off right after its ack):
+    # 'acked', read back now. Called 'applied (ack lost)' with an ERROR, its record's own history said
+    # the ack had come (a fleet engineer's power cuts)
+    acked = status == "readback_timeout" and crc is not None and rec.push.get("acked_crc") == crc
+    new = "acked" if acked else "applied_ack_lost"
     try:
-        store.update_push(serial, version, {"status": "applied_ack_lost", "acked_crc": crc,
+        store.update_push(serial, version, {"status": new, "acked_crc": crc,
                                             "readback_ok": True, "history": history,
                                             "reconciled_utc": utc_now()})
     except Exception as err:  # a full disk: say so, retry at the next read-back
         return Agreement(version, crc, status, False,
                          f"the unit holds v{version} (stored as {status!r}); store not updated: {err}")
+    if acked:
+        log.info("unit %d holds v%d, acked before its read-back was lost: read back now, recorded as acked",
+                 serial, version)
+        return Agreement(version, crc, "acked", True,
+                         f"the unit holds v{version}; its ack had come, its read-back now{boot_note}", own)
     log.warning("unit %d holds v%d although its push ended %r: recorded as applied (ack lost)",
                 serial, version, status)
     return Agreement(version, crc, "applied_ack_lost", True,

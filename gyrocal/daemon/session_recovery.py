@@ -112,11 +112,13 @@ class RecoveryMixin:
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
         lp = self.last_push
-        if self.agreement.get("store_status") == "applied_ack_lost" and lp.get("version") == msg.version \
+        settled = self.agreement.get("store_status")
+        if settled in APPLIED_STATUSES and lp.get("version") == msg.version \
                 and lp.get("status") not in APPLIED_STATUSES:
-            # the store's record became 'applied (ack lost)'; status's last_push kept saying 'timeout',
-            # readback_ok false, for a set the unit holds (a serial integrator's unplug mid-push)
-            self.last_push = {**lp, "status": "applied_ack_lost", "readback_ok": True,
+            # the store's record became 'applied (ack lost)' (or 'acked': its read-back was lost);
+            # status's last_push kept saying 'timeout', readback_ok false, for a set the unit holds (a
+            # serial integrator's unplug mid-push)
+            self.last_push = {**lp, "status": settled, "readback_ok": True,
                               "acked_crc": crc,
                               "reconciled_utc": utc_now()}
         note = self.agreement.get("note")
