@@ -295,10 +295,18 @@ def test_a_thermal_curve_the_unit_holds_is_not_replaced_by_a_constant(tmp_path: 
     held = VirtualUnit._build(CoeffWrite(7, terms_id(TERMS), coeffs))
     h = _steady_harness(tmp_path, applied=held)
     h.switch_on()
+    before = h.unit.status()["drift_rms_compensated_dps"]
     h.run(90.0)
     s = h.session
-    assert s is not None and _acked(h.store) == [], s.reason
-    assert "constant alone" not in s.reason and "rank" in s.reason, s.reason
+    # the unit's curve is the warm start's prior (the store has no record of it): its constant is
+    # re-estimated, its temperature terms kept; never a constant alone
+    assert s is not None and _acked(h.store) == [8] and s.warm_started_from == 7, s.reason
+    rec = h.store.get(4242, 8)
+    assert rec is not None and rec.stats["validation"]["stage"] == "bias"
+    np.testing.assert_array_equal(np.asarray(rec.coefficients_dps)[:, 1:], np.asarray(coeffs)[:, 1:])
+    after = h.unit.status()["drift_rms_compensated_dps"]
+    for a in "xyz":
+        assert after[a] * 5 <= before[a], (a, before[a], after[a])
 
 
 def test_no_drift_alarm_beyond_the_held_set_s_range_where_a_refinement_is_due(tmp_path: Path,

@@ -1019,3 +1019,31 @@ def test_a_push_acked_whose_read_back_was_lost_is_recorded_acked_at_the_next_rea
     assert rec is not None and rec.push["status"] == "acked" and rec.push["readback_ok"], rec.push
     assert rec.push["history"][-1]["status"] == "readback_timeout"
     assert h.session is not None and h.session.agreement["agree"]
+
+
+def test_a_unit_holding_a_set_the_store_does_not_know_gets_its_bias_at_one_pose(tmp_path: Path) -> None:
+    """A new navigation computer (an empty store) beside a unit that holds a good set from the old one,
+    mounted at one pose: cold, the unit's set was kept as it was, the switch-on's bias in it for good
+    (a curve the unit holds is not replaced by a constant; on a tumble, 168 s to a full set: an
+    operator's audit). Now the unit's set is the warm start's prior and the bias stage comes first."""
+    from gyrocal.protocol.messages import CoeffWrite
+    from gyrocal.protocol.termsets import SEED000_ID
+    from gyrocal.sim.schedule import still
+    from gyrocal.sim.unit import VirtualUnit
+
+    h = Harness.make(tmp_path)
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    truth = h.unit.truth.coeffs_dps
+    h.unit.applied = VirtualUnit._build(CoeffWrite(7, SEED000_ID, truth.tolist()))  # the old computer's
+    h.switch_on()
+    before = h.unit.status()["drift_rms_compensated_dps"]  # this switch-on's bias, under the old set
+    h.run(20, until=_pushed)
+    s = h.session
+    assert s is not None and s.warm_started_from == 7 and s.last_push.get("status") == "acked", s.reason
+    rec = h.store.get(4242, s.last_push["version"])
+    assert rec is not None and rec.version == 8 and rec.stats["validation"]["stage"] == "bias"
+    c = np.asarray(rec.coefficients_dps)
+    np.testing.assert_array_equal(c[:, 1:], truth[:, 1:])  # the unit's gravity terms, kept
+    after = h.unit.status()["drift_rms_compensated_dps"]
+    for a in "xyz":
+        assert after[a] * 5 <= before[a], (a, before[a], after[a])

@@ -421,12 +421,40 @@ class Session(RecoveryMixin):
                     applied.terms_id)
             self.reason = self._refused_terms() or "collecting still samples"
             self._end_blind()  # a failed push's samples up to here: their set is not known
+        first = self.applied is None and before is None
         self.applied = applied
         self._read_asks = 0
         self._reconcile(msg)
+        if first:
+            self._adopt_unit_set(msg)
         if self._retry is not None and self.agreement.get("agree") and msg.version == self._retry["version"]:
             log.info("unit %s already holds v%d: no retry needed", self.hello.serial, msg.version)
             self._retry = None
+
+    def _adopt_unit_set(self, msg: CoeffReport) -> None:
+        """A cold start on a unit that holds a set of this session's terms which the store has no
+        acked record of (a new navigation computer, a wiped state directory, a set another host wrote):
+        that set becomes the warm start's prior, so its bias is re-estimated from the first still second.
+        Cold, it was kept as it was: 168 s to a full set on a tumble, and never at one pose, where a
+        curve the unit holds is not replaced by a constant (an operator's audit)."""
+        lr = self.learner
+        if lr.prior is not None or self.validated_rms is not None or self.last_push or lr.samples \
+                or self.caps.own_boot_bias or self.caps.reboot_required:
+            return
+        if self.agreement.get("store_status") in APPLIED_STATUSES:
+            return  # a set of ours the store holds: the engine's prior choice stands
+        if names_for(msg.terms_id) != tuple(self.names):
+            return
+        coeffs = np.asarray(msg.coeffs_dps, dtype=np.float64)
+        if coeffs.shape != (3, len(self.names)) or not np.all(np.isfinite(coeffs)) or not np.any(coeffs):
+            return
+        prior = CalibrationRecord(serial=self.hello.serial, version=msg.version, terms=list(self.names),
+                                  coefficients_dps=coeffs.tolist(),
+                                  uncertainty_dps=[[None] * len(self.names)] * 3, push={"status": "unit"})
+        self.learner = Learner(self.cfg, prior, self.rate_hz)
+        self.warm_started_from = msg.version
+        log.info("unit %s: the store has no record of the set it holds (v%d): warm start from the unit's "
+                 "set, its bias re-estimated from the first still second", self.hello.serial, msg.version)
 
     # -- samples ------------------------------------------------------------------------------
     def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
