@@ -129,6 +129,7 @@ _BAD_VALUES: dict[str, list[object]] = {
     "still.gyro_std_dps": [0, -0.05],
     "still.accel_tol_g": [0, 2],
     "still.k_std": [1, 0.5],
+    "still.k_turn": [1, 0.5],
     "still.margin_s": [-0.1],
     "still.min_run_s": [0, -1],
     "still.learn_s": [0],
