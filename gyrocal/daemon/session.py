@@ -443,8 +443,8 @@ class Session(RecoveryMixin):
             return
         if self.agreement.get("store_status") in APPLIED_STATUSES:
             return  # a set of ours the store holds: the engine's prior choice stands
-        if names_for(msg.terms_id) != tuple(self.names):
-            return
+        if names_for(msg.terms_id) != tuple(self.names) or not self.applied.beyond_constant():
+            return  # a constant alone says nothing of the other terms: the cold rules decide (constant alone)
         coeffs = np.asarray(msg.coeffs_dps, dtype=np.float64)
         if coeffs.shape != (3, len(self.names)) or not np.all(np.isfinite(coeffs)) or not np.any(coeffs):
             return
