@@ -1047,3 +1047,27 @@ def test_a_unit_holding_a_set_the_store_does_not_know_gets_its_bias_at_one_pose(
     after = h.unit.status()["drift_rms_compensated_dps"]
     for a in "xyz":
         assert after[a] * 5 <= before[a], (a, before[a], after[a])
+
+
+def test_a_unit_given_its_constant_alone_then_tumbled_gets_its_full_set_without_waiting(
+        tmp_path: Path) -> None:
+    """After a push the next validation waits for twice the samples. A unit at one pose got its
+    constant alone at 62 s; tumbled then, its data reached rank 9 within 20 s, and the full set came
+    165 s after the tumble began (an integrator's CAN campaign: 50 s late). New directions make the
+    next validation due at once."""
+    from gyrocal.sim.schedule import still, tumble
+
+    h = Harness.make(tmp_path)
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    h.switch_on()
+    h.run(100, until=_pushed)
+    assert h.store.latest(4242).stats["validation"]["stage"] == "bias"
+    start = h.now
+    h.unit.schedule = h.unit.stream.schedule = tumble(1.2, 0.4)  # tumbled from now on, same switch-on
+    h.run(200, until=lambda h: h.store.latest(4242).version > 1)
+    rec = h.store.latest(4242)
+    assert rec.version == 2 and rec.stats["validation"]["stage"] == "full" and rec.push["status"] == "acked"
+    assert h.now - start < 60.0, h.now - start  # was 165 s
+    st = h.unit.status()
+    for a in "xyz":
+        assert st["drift_rms_compensated_dps"][a] * 10 <= st["drift_rms_raw_dps"][a], st

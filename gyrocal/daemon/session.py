@@ -272,6 +272,7 @@ class Session(RecoveryMixin):
         self._steady_s = 0.0  # how long [s] the temperature has stayed in that band (STEADY_S)
         self._rank_since: tuple[int, float] = (-1, float("nan"))  # (rank, unit time [s] it was reached)
         self._range_pushed: tuple[float, float] | None = None  # temp_seen [degC] at the last full set
+        self._rank_validated = 0  # the learner's rank at the last validation (an early one when it grows)
         self._held_said: list[str] = []  # the terms held at 0 that the log has named (HOLD_STALL_S)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
@@ -1017,9 +1018,13 @@ class Session(RecoveryMixin):
                 self.state, self.reason = State.COLLECTING, why if refused is None else f"{refused}; {why}"
             return
         # after a push the next validation waits for twice the samples; a temperature range that has
-        # widened past the held set's (refine.py) is worth a look sooner, at 10 % more samples
+        # widened past the held set's (refine.py) is worth a look sooner, at 10 % more samples; so is
+        # data that has determined a direction more than the last validation's: a unit at one pose
+        # given its constant alone at 62 s, then tumbled, reached rank 9 in 20 s and waited 145 s more
+        # for twice the samples (an integrator's CAN campaign)
         early = (self._gate_result is not None and self._gate_result.widened
-                 and self.learner.samples >= 1.1 * self._validated_at)
+                 and self.learner.samples >= 1.1 * self._validated_at) \
+            or self.learner.rank > self._rank_validated
         if self.learner.samples < self._next_validation_at and not early:
             if not monitoring and self.last_validation.get("passed") is False:
                 self.reason = "validation failed before; collecting more samples"
@@ -1073,6 +1078,7 @@ class Session(RecoveryMixin):
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
         self._validated_at = self.learner.samples
+        self._rank_validated = self.learner.rank
         # what the unit can hold (capabilities.py): validated, recorded and pushed; the rest is reported
         held = self.caps.held_subset(self.names)
         if held is None:
