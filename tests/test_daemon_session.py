@@ -1044,9 +1044,43 @@ def test_a_unit_holding_a_set_the_store_does_not_know_gets_its_bias_at_one_pose(
     assert rec is not None and rec.version == 8 and rec.stats["validation"]["stage"] == "bias"
     c = np.asarray(rec.coefficients_dps)
     np.testing.assert_array_equal(c[:, 1:], truth[:, 1:])  # the unit's gravity terms, kept
+    # how good they are off the pose is not known: no sphere figure (it promised 1.2 deg/h where a
+    # garbage set left 267-704: an integrator's check)
+    pred = rec.stats["predicted_drift_dph"]
+    assert pred["left_sphere"] == pred["bound"] == {"x": None, "y": None, "z": None}, pred
     after = h.unit.status()["drift_rms_compensated_dps"]
     for a in "xyz":
         assert after[a] * 5 <= before[a], (a, before[a], after[a])
+
+
+def test_a_unit_back_with_a_set_another_host_wrote_is_not_overwritten_by_an_older_stored_one(
+        tmp_path: Path) -> None:
+    """The store holds an older acked set of the unit (v8, another unit's gravity terms); the unit
+    comes back from a factory recalibration holding v12, which the store does not know. The session
+    warm-started from v8 and its bias stage put v8's gravity terms back: 18-19 deg/h off the pose where
+    the unit's own set left 0.04-0.58 (an integrator's check). The set the unit holds is the prior."""
+    from gyrocal.daemon.store import CalibrationRecord
+    from gyrocal.protocol.messages import CoeffWrite
+    from gyrocal.protocol.termsets import SEED000_ID, SEED000_TERMS
+    from gyrocal.sim.schedule import still
+    from gyrocal.sim.unit import VirtualUnit
+
+    h = Harness.make(tmp_path)
+    truth = h.unit.truth.coeffs_dps
+    stale = truth + np.random.default_rng(4).normal(0.0, 5.0 / 3600.0, truth.shape)
+    h.store.add(CalibrationRecord(serial=4242, version=8, terms=list(SEED000_TERMS),
+                                  coefficients_dps=stale.tolist(), uncertainty_dps=[[None] * 10] * 3,
+                                  push={"status": "acked"}))
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    h.unit.applied = VirtualUnit._build(CoeffWrite(12, SEED000_ID, truth.tolist()))  # the factory's
+    h.switch_on()
+    assert h.session is not None and h.session.warm_started_from == 8  # the store's choice, at first
+    h.run(20, until=_pushed)
+    s = h.session
+    assert s.warm_started_from == 12 and s.last_push.get("status") == "acked", s.reason
+    rec = h.store.get(4242, s.last_push["version"])
+    assert rec is not None and rec.version == 13
+    np.testing.assert_array_equal(np.asarray(rec.coefficients_dps)[:, 1:], truth[:, 1:])
 
 
 def test_a_unit_given_its_constant_alone_then_tumbled_gets_its_full_set_without_waiting(

@@ -433,29 +433,57 @@ class Session(RecoveryMixin):
             self._retry = None
 
     def _adopt_unit_set(self, msg: CoeffReport) -> None:
-        """A cold start on a unit that holds a set of this session's terms which the store has no
-        acked record of (a new navigation computer, a wiped state directory, a set another host wrote):
-        that set becomes the warm start's prior, so its bias is re-estimated from the first still second.
-        Cold, it was kept as it was: 168 s to a full set on a tumble, and never at one pose, where a
-        curve the unit holds is not replaced by a constant (an operator's audit)."""
+        """The set the unit holds is the warm start's prior when it is not the one the session started
+        from (the store's last held set, or none), before anything is learnt or pushed.
+
+        - A set of the configured terms that the store has no acked record of (a new navigation
+          computer, a wiped state directory, a set another host wrote, another set under a stored
+          version's number): its bias is re-estimated from the first still second, its other terms
+          kept. Cold, such a unit waited 168 s for a full tumble, and at one pose kept the old
+          switch-on's bias for good (an operator's audit); warm-started from the store's older set, a
+          unit back from a factory recalibration had its gravity terms overwritten, 18-19 deg/h off
+          the pose where the unit's own set left 0.04-0.58 (an integrator's check). The quality of such
+          a set is not known: the figures over the sphere are null, as for a constant alone.
+        - A set the store holds as applied but is not the one the session started from: that record.
+        """
         lr = self.learner
-        if lr.prior is not None or self.validated_rms is not None or self.last_push or lr.samples \
+        if self.validated_rms is not None or self.last_push or lr.samples \
                 or self.caps.own_boot_bias or self.caps.reboot_required:
             return
-        if self.agreement.get("store_status") in APPLIED_STATUSES:
-            return  # a set of ours the store holds: the engine's prior choice stands
+        ag = self.agreement
+        known = bool(ag.get("agree")) and ag.get("store_status") in APPLIED_STATUSES
+        if known and msg.version == self.warm_started_from:
+            return
         if names_for(msg.terms_id) != tuple(self.names) or not self.applied.beyond_constant():
             return  # a constant alone says nothing of the other terms: the cold rules decide (constant alone)
         coeffs = np.asarray(msg.coeffs_dps, dtype=np.float64)
-        if coeffs.shape != (3, len(self.names)) or not np.all(np.isfinite(coeffs)) or not np.any(coeffs):
+        if coeffs.shape != (3, len(self.names)) or not np.all(np.isfinite(coeffs)):
             return
-        prior = CalibrationRecord(serial=self.hello.serial, version=msg.version, terms=list(self.names),
-                                  coefficients_dps=coeffs.tolist(),
-                                  uncertainty_dps=[[None] * len(self.names)] * 3, push={"status": "unit"})
-        self.learner = Learner(self.cfg, prior, self.rate_hz)
+        was = "none" if self.warm_started_from is None else f"v{self.warm_started_from}"
+        prior: Any = None
+        if known:
+            try:
+                prior = self.store.get(self.hello.serial, msg.version)
+            except Exception:  # the store is unavailable: the unit's coefficients, as for an unknown set
+                prior = None
+        if prior is not None:
+            why = f"the store's v{msg.version}, which the unit holds (the session started from {was})"
+        else:
+            inf = {a: float("inf") for a in "xyz"}  # nothing says how good it is off the poses seen
+            prior = CalibrationRecord(serial=self.hello.serial, version=msg.version, terms=list(self.names),
+                                      coefficients_dps=coeffs.tolist(),
+                                      uncertainty_dps=[[None] * len(self.names)] * 3,
+                                      stats={"predicted_drift_dph": {"left_sphere": inf}},
+                                      push={"status": "unit"})
+            why = (f"the unit's own v{msg.version}, which the store has no acked record of (the session "
+                   f"started from {was})")
+        learner = Learner(self.cfg, prior, self.rate_hz)
+        if learner.prior is None:
+            return
+        self.learner = learner
         self.warm_started_from = msg.version
-        log.info("unit %s: the store has no record of the set it holds (v%d): warm start from the unit's "
-                 "set, its bias re-estimated from the first still second", self.hello.serial, msg.version)
+        log.info("unit %s: warm start from %s: its bias re-estimated from the first still second",
+                 self.hello.serial, why)
 
     # -- samples ------------------------------------------------------------------------------
     def feed(self, samples: np.ndarray, still: np.ndarray, now: float) -> None:
