@@ -1105,3 +1105,28 @@ def test_a_unit_given_its_constant_alone_then_tumbled_gets_its_full_set_without_
     st = h.unit.status()
     for a in "xyz":
         assert st["drift_rms_compensated_dps"][a] * 10 <= st["drift_rms_raw_dps"][a], st
+
+
+def test_a_switch_on_right_after_an_ack_keeps_the_ack_and_the_next_read_back_settles_it(
+        tmp_path: Path) -> None:
+    """The unit acked and went dark before its read-back; its next HELLO closed the push as
+    'abandoned', and the read-back then called it 'applied (ack lost)' with two WARNINGs, although the
+    ack had come (an integrator's check, 3 of 3 with the ACK as the unit's last frame)."""
+    from gyrocal.daemon.push import PushPhase
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session is not None and h.session.push is not None)
+    h.unit.faults.no_coeff_read = True
+    h.run(5, until=lambda h: h.session.push is not None and h.session.push.phase is PushPhase.WAIT_READBACK)
+    s = h.session
+    assert s.push is not None and s.push.phase is PushPhase.WAIT_READBACK
+    v = s.push.write.version
+    h.unit.faults.no_coeff_read = False
+    s.close("a new session started (boot 2)", h.now)  # as the engine does at the unit's next HELLO
+    h.switch_on()
+    assert h.store.get(4242, v).push["status"] == "readback_timeout"
+    h.run(3)
+    rec = h.store.get(4242, v)
+    assert rec.push["status"] == "acked" and rec.push["readback_ok"], rec.push
+    assert h.session is not None and h.session.agreement["agree"] and h.session.warm_started_from == v

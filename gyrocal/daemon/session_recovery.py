@@ -80,11 +80,22 @@ class RecoveryMixin:
             log.info("unit %s: v%d not pushed: %s", self.hello.serial, due["version"], reason)
             self._store_push(due["version"], dict(self.last_push), now)
         if self.push is not None:
-            version = self.push.write.version
-            self.push = None
-            self.last_push = {"version": version, "status": "abandoned", "utc": utc_now(),
-                              "reasons": [f"push cut short: {reason}; the unit's read-back decides"]}
-            log.warning("unit %s: push of v%d abandoned: %s", self.hello.serial, version, reason)
+            push, self.push = self.push, None
+            version = push.write.version
+            if push.acked_crc is not None:
+                # acked, its read-back cut short (a unit switched off right after its ACK): the record
+                # keeps the ack, and the next read-back of the set makes it 'acked'. Recorded as
+                # 'abandoned', it became 'applied (ack lost)' with two WARNINGs (an integrator's check)
+                self.last_push = {"version": version, "status": "readback_timeout", "utc": utc_now(),
+                                  "attempts": push.attempts, "acked_crc": push.acked_crc,
+                                  "reasons": [*push.reasons, f"read-back cut short: {reason}"]}
+                log.info("unit %s: v%d was acked; its read-back was cut short (%s): the next one decides",
+                         self.hello.serial, version, reason)
+            else:
+                self.last_push = {"version": version, "status": "abandoned", "utc": utc_now(),
+                                  "attempts": push.attempts,
+                                  "reasons": [f"push cut short: {reason}; the unit's read-back decides"]}
+                log.warning("unit %s: push of v%d abandoned: %s", self.hello.serial, version, reason)
             self._store_push(version, dict(self.last_push), now)
         self._retry = None
 
