@@ -53,8 +53,8 @@ def test_rolling_over_columns_is_the_per_column_rolling_bit_for_bit() -> None:
         for k in range(6):
             m1, s1 = _rolling_1d(x[:, k], w)
             assert np.array_equal(mean[:, k], m1) and np.array_equal(std[:, k], s1)
-        g_mean, g_std, a_std, _ = rolling_stats(x[:, :3], x[:, 3:], w)
-        assert np.array_equal(g_mean, mean[:, :3]) and np.array_equal(a_std, std[:, 3:])
+        stats = rolling_stats(x[:, :3], x[:, 3:], w)
+        assert np.array_equal(stats[:, 0:3], mean[:, :3]) and np.array_equal(stats[:, 6:9], std[:, 3:])
 
 
 def test_quantum_by_sort_is_the_step_between_distinct_values() -> None:

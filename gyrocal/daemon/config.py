@@ -86,7 +86,7 @@ _SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], Any, str]]] = {
     "still": {
         "window_s": ((int, float), 0.4, "write the still-detector window in seconds"),
         "k_std": ((int, float), 4.0, "write the multiple of the unit's quiet gyro/accel spread, > 1"),
-        "k_turn": ((int, float), 5.0, "write the multiple of the unit's quiet gravity turn, > 1"),
+        "k_turn": ((int, float), 8.0, "write the multiple of the turn the unit's noise gives, > 1"),
         "margin_s": ((int, float), 0.1, "write the seconds cut from each end of a still stretch"),
         "min_run_s": ((int, float), 0.5, "write the shortest still stretch kept, in seconds"),
         "learn_s": ((int, float), 1.0, "write the seconds after switch-on that teach the noise level"),

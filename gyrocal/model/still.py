@@ -60,14 +60,20 @@ class StillRule:
     max_rate_dps: float = 10.0
     """A rolling gyro mean beyond this [deg/s] is a turn, whatever the learnt centre: a unit that
     switches on turning would otherwise learn the turn as its bias (MEMS biases are a few deg/s)."""
-    k_turn: float = 5.0
-    """Gravity turning within a window: an accelerometer axis whose second-half mean differs from its
-    first-half mean [g] by more than this many times its quiet level (the larger of white noise's,
-    2 sigma / sqrt(window), and what the unit shows at rest, ``TURN_Q10``). A vehicle pitching or
-    rolling at 0.3 deg/s is within the gyro band's floor (0.5 deg/s) and its accelerometer's rolling
-    std stays below 4 sigma, yet the turn is the drift learnt: false drift alarms of 100-740 deg/h
-    where the unit left 0.3-13, and refinements refused (a fleet engineer's road drives). At 400 Hz
-    with 0.2 mg of noise, turns from about 0.05 deg/s are seen."""
+    k_turn: float = 8.0
+    """Turning within a window: an axis whose second-half mean differs from its first-half mean by more
+    than this many times what noise alone gives at rest, on the accelerometer [g] (gravity turning)
+    or on the gyro [deg/s] (the rate changing: an angular acceleration). What noise gives is found
+    from the noise's first and second differences (``turn_noise``), which a steady turn does not
+    touch. A vehicle pitching or rolling at 0.2-0.4 deg/s is inside the gyro band's floor (0.5
+    deg/s) and below 4 sigma of accelerometer spread, yet the turn is the drift learnt: false drift
+    alarms of 100-740 deg/h where the unit left 0.3-13, and refinements refused (a fleet engineer's
+    road drives). Rocking from switch-on made the quiet level itself: a turn level learnt from the
+    samples' spread or the history's own turns let it all in, and a bias stage made an axis 3.4x
+    worse (an integrator's check). At 400 Hz with 0.2 mg and 0.002 deg/s of noise, turns from about
+    0.07 deg/s and angular accelerations from about 0.015 deg/s^2 are seen; a swing slower than both
+    is not. 8, not 5: at 5 the hand-held and coloured MPU logs in data/ lost up to 17 % of their
+    still samples to noise."""
     learn_s: float = 1.0
     """On line: seconds of data before the first decision (the quiet level is learnt on them)."""
     memory_s: float = 120.0
@@ -83,21 +89,45 @@ class StillRule:
         return int(round(self.min_run_s * rate_hz))
 
 
-TURN_Q10 = 0.1257
-"""The 10 % quantile of |z| for a normal z: a window's turn statistic at rest is about normal, so its
-10 % quantile over the history, divided by this, is its standard deviation (coloured or quantised
-noise included; the quiet level uses the same quantile)."""
+RHO_MAX = 0.9
+"""The largest lag-1 correlation of a noise that ``turn_noise`` believes (a colour factor of 4.4)."""
+
+# the columns of a rolling-statistics row (``rolling_stats``), per axis x, y, z
+GYRO_MEAN, GYRO_STD, ACCEL_STD = slice(0, 3), slice(3, 6), slice(6, 9)
+GYRO_TURN, ACCEL_TURN = slice(9, 12), slice(12, 15)
+GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2 = slice(15, 18), slice(18, 21), slice(21, 24), slice(24, 27)
+STATS_COLUMNS = 27
+
+
+def turn_noise(d1_std: np.ndarray, d2_std: np.ndarray, w: int) -> np.ndarray:
+    """The standard deviation of a window's turn (second-half mean minus first-half mean, ``w``
+    samples) that noise alone gives, from the spreads of the noise's first and second differences.
+
+    Differences are blind to a steady turn: a unit rocking from switch-on inflates its samples' own
+    spread, and a turn level learnt from it let the rocking in (an integrator's check). For a
+    first-order (AR(1)) noise of variance s^2 and lag-1 correlation rho, var(d1) = 2 s^2 (1 - rho)
+    and var(d2) = 2 s^2 (1 - rho)(3 - rho): rho = 3 - var(d2) / var(d1) (0 for white noise), and a
+    half-window mean's variance is s^2 (1 + rho) / (1 - rho) / (w / 2). A sensor's low-pass filter
+    (MPU DLPF) colours its noise that way. An axis whose differences are 0 (quantised, still): 0.
+    """
+    d1, d2 = np.asarray(d1_std, dtype=float), np.asarray(d2_std, dtype=float)
+    ok = d1 > 0
+    rho = np.clip(3.0 - (d2 / np.where(ok, d1, 1.0)) ** 2, 0.0, RHO_MAX)
+    var = d1**2 / (2.0 * (1.0 - rho))
+    return np.where(ok, 2.0 * np.sqrt(var * (1.0 + rho) / (1.0 - rho) / max(w, 1)), 0.0)
 
 
 @dataclass
 class QuietLevels:
     """The unit's quiet level: per-axis gyro std [deg/s], accel std [g], still gyro mean [deg/s], and
-    the accel turn's standard deviation at rest [g] (``StillRule.k_turn``)."""
+    the standard deviation at rest of a window's turn (``StillRule.k_turn``), accel [g] and gyro
+    [deg/s]."""
 
     gyro_dps: np.ndarray
     accel_g: np.ndarray
     centre_dps: np.ndarray
     turn_g: np.ndarray
+    turn_dps: np.ndarray
 
     def as_dict(self, rule: StillRule) -> dict[str, object]:
         """For status: the noise level and the thresholds in force."""
@@ -110,6 +140,7 @@ class QuietLevels:
             "gyro_mean_band_dps": dict(zip(AXES, band.tolist(), strict=True)),
             "gyro_centre_dps": dict(zip(AXES, self.centre_dps.tolist(), strict=True)),
             "accel_turn_limit_g": dict(zip(AXES, (rule.k_turn * self.turn_g).tolist(), strict=True)),
+            "gyro_turn_limit_dps": dict(zip(AXES, (rule.k_turn * self.turn_dps).tolist(), strict=True)),
         }
 
 
@@ -211,45 +242,79 @@ def _rolling(x: np.ndarray, w: int, halves: bool = False) -> tuple[np.ndarray, .
     return mean + x0, np.sqrt(var), second - first
 
 
-def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> tuple[np.ndarray, ...]:
-    """Rolling gyro mean (N, 3) [deg/s], gyro std (N, 3) [deg/s], accel std (N, 3) [g] and accel turn
-    (N, 3) [g] (second half's mean minus the first's) over w samples."""
-    mean, std, halves = _rolling(np.hstack([np.asarray(gyro, dtype=float), np.asarray(accel, dtype=float)]),
-                                 w, halves=True)
-    return mean[:, :3], std[:, :3], std[:, 3:], halves[:, 3:]
+def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> np.ndarray:
+    """Rolling statistics over w samples, a row (STATS_COLUMNS,) per sample: gyro mean [deg/s], gyro
+    and accel std [deg/s, g], gyro and accel turn (the window's second-half mean minus its first's),
+    and the std of the gyro's and accel's first and second differences (0 before the first sample)."""
+    x = np.hstack([np.asarray(gyro, dtype=float), np.asarray(accel, dtype=float)])
+    return _stats_rows(x, *_differences(x, None, None), w, slice(0, len(x)))
 
 
-def quiet_levels(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, turn: np.ndarray, rule: StillRule,
-                 w: int, accel_quantum_g: np.ndarray | None = None) -> QuietLevels:
-    """The quiet level from rolling statistics (rows: samples, or a decimated history of them).
+def _differences(x: np.ndarray, prev: np.ndarray | None,
+                 prev_d1: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """First and second differences (N, 6) of rows x, continuing from the row before (``prev``) and
+    its first difference (``prev_d1``); 0 where there is none."""
+    d1 = np.zeros_like(x)
+    if len(x):
+        d1[1:] = np.diff(x, axis=0)
+        if prev is not None:
+            d1[0] = x[0] - prev
+    d2 = np.zeros_like(x)
+    if len(x):
+        d2[1:] = np.diff(d1, axis=0)
+        if prev_d1 is not None:
+            d2[0] = d1[0] - prev_d1
+    return d1, d2
+
+
+def _stats_rows(x: np.ndarray, d1: np.ndarray, d2: np.ndarray, w: int, sel: slice) -> np.ndarray:
+    """The STATS_COLUMNS rows ``sel`` of samples x (N, 6) and their differences d1, d2 (N, 6)."""
+    mean, std, halves = _rolling(np.hstack([x, d1, d2]), w, halves=True)
+    out = np.empty((sel.stop - sel.start, STATS_COLUMNS))
+    out[:, GYRO_MEAN] = mean[sel, 0:3]
+    out[:, 3:9] = std[sel, 0:6]
+    out[:, 9:15] = halves[sel, 0:6]
+    out[:, 15:27] = std[sel, 6:18]
+    return out
+
+
+def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
+                 accel_quantum_g: np.ndarray | None = None) -> QuietLevels:
+    """The quiet level from rolling statistics rows (samples, or a decimated history of them).
 
     The accelerometer's quiet level is floored at half its quantum (``accel_quantum_g``, (3,) [g]): a
     quantised still axis (CAN: 1 mg) has a rolling std of exactly 0 in many windows, which would
-    otherwise make nothing still. The turn's level (``w``: the window [samples]) is at least white
-    noise's, 2 sigma / sqrt(w), and what the history shows (``TURN_Q10``).
+    otherwise make nothing still. A turn's level (``w``: the window [samples]) is what the noise
+    gives (``turn_noise``, from its differences, blind to a steady turn), floored like the spread: a
+    quantised axis at white noise's 2 (quantum / 2) / sqrt(w).
     """
-    q = np.quantile(np.hstack([std, astd, np.abs(turn)]), rule.quantile, axis=0)  # per column, one call
-    gq = np.maximum(q[:3], 1e-9)
+    cols = np.r_[3:9, 15:27]
+    q = np.quantile(stats[:, cols], rule.quantile, axis=0)  # per column, one call
+    gq = np.maximum(q[0:3], 1e-9)
     floor = np.maximum(1e-6, 0.5 * (np.zeros(3) if accel_quantum_g is None else accel_quantum_g))
     aq = np.maximum(q[3:6], floor)
-    turn_g = np.maximum(2.0 * aq / np.sqrt(max(w, 1)), q[6:9] / TURN_Q10)
+    white = 2.0 / np.sqrt(max(w, 1))
+    turn_dps = np.maximum(turn_noise(q[6:9], q[12:15], w), 1e-12)
+    turn_g = np.maximum(turn_noise(q[9:12], q[15:18], w), white * floor)
+    mean, std = stats[:, GYRO_MEAN], stats[:, GYRO_STD]
     centre = np.empty(3)
     slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
     for k in range(3):
         sel = (std[:, k] < rule.k_std * gq[k]) & slow
         centre[k] = np.median(mean[sel, k]) if np.any(sel) else 0.0
-    return QuietLevels(gq, aq, centre, turn_g)
+    return QuietLevels(gq, aq, centre, turn_g, turn_dps)
 
 
-def quiet_mask(mean: np.ndarray, std: np.ndarray, astd: np.ndarray, turn: np.ndarray, lv: QuietLevels,
-               rule: StillRule) -> np.ndarray:
+def quiet_mask(stats: np.ndarray, lv: QuietLevels, rule: StillRule) -> np.ndarray:
     """Per sample (N,): quiet by the rule's relative thresholds (before margins and minimum length)."""
+    mean = stats[:, GYRO_MEAN]
     band = np.maximum(rule.band_k * lv.gyro_dps, rule.band_floor_dps)
-    ok = np.all(std < rule.k_std * lv.gyro_dps, axis=1)
+    ok = np.all(stats[:, GYRO_STD] < rule.k_std * lv.gyro_dps, axis=1)
     ok &= np.all(np.abs(mean - lv.centre_dps) < band, axis=1)
     ok &= np.all(np.abs(mean) < rule.max_rate_dps, axis=1)
-    ok &= np.all(astd < rule.k_std * lv.accel_g, axis=1)
-    ok &= np.all(np.abs(turn) < rule.k_turn * lv.turn_g, axis=1)
+    ok &= np.all(stats[:, ACCEL_STD] < rule.k_std * lv.accel_g, axis=1)
+    ok &= np.all(np.abs(stats[:, ACCEL_TURN]) < rule.k_turn * lv.turn_g, axis=1)
+    ok &= np.all(np.abs(stats[:, GYRO_TURN]) < rule.k_turn * lv.turn_dps, axis=1)
     if np.any(lv.gyro_dps > rule.max_quiet_dps):
         ok[:] = False
     return ok
@@ -268,9 +333,9 @@ def detect_still(
     gyro = np.column_stack([np.asarray(columns[f"w{a}"], dtype=float) for a in AXES])
     accel = np.column_stack([np.asarray(columns[f"a{a}"], dtype=float) for a in AXES])
     w = rule.window(rate_hz)
-    mean, std, astd, turn = rolling_stats(gyro, accel, w)
+    stats = rolling_stats(gyro, accel, w)
     quantum = np.array([_quantum(accel[:, k]) for k in range(3)])
-    ok = quiet_mask(mean, std, astd, turn, quiet_levels(mean, std, astd, turn, rule, w, quantum), rule)
+    ok = quiet_mask(stats, quiet_levels(stats, rule, w, quantum), rule)
     session = np.asarray(columns.get("session", np.zeros(n)))
     return _shrink(ok, session, rule.margin(rate_hz), rule.min_run(rate_hz))
 
@@ -328,9 +393,9 @@ class StreamingStill:
         self.min_len = max(self.rule.min_run(self.rate_hz), 1)
         self.step = max(1, self.w // 4)  # history decimation
         hist = int(min(4096, max(64, self.rule.memory_s * self.rate_hz / self.step)))
-        # rows of (mean 3, std 3, astd 3, turn 3), the newest ``hist``, in a circular buffer: the quiet
+        # rolling-statistics rows (STATS_COLUMNS), the newest ``hist``, in a circular buffer: the quiet
         # level is a quantile and a median over them, which do not depend on the rows' order
-        self._hist = np.empty((hist, 12))
+        self._hist = np.empty((hist, STATS_COLUMNS))
         self._hist_n = 0  # rows held
         self._hist_i = 0  # where the next row goes
         self._learn_rows = int(round(self.rule.learn_s * self.rate_hz))
@@ -350,6 +415,8 @@ class StreamingStill:
         self._empty: np.ndarray | None = None
         self._levels_at = -(1 << 62)  # _stat_index when the levels were last computed
         self._quantum = np.full(3, np.inf)  # smallest accel step seen per axis [g] (quantisation)
+        self._prev: np.ndarray | None = None  # the row before the kept look-behind (differences)
+        self._prev_d1: np.ndarray | None = None  # its first difference
 
     def reset(self) -> None:
         self.__init__(self.rate_hz, self.rule)  # type: ignore[misc]
@@ -375,19 +442,18 @@ class StreamingStill:
                 x[:, k] = part[f]
             for k in range(3):
                 self._quantum[k] = min(self._quantum[k], _quantum(x[:, 3 + k]) or np.inf)
+            # differences, continuing from the row before the part (0 at the start)
+            d1, d2 = _differences(x, self._prev, self._prev_d1)
             # centred windows: rows before _stat_from are kept as look-behind for this purpose
-            mean, std, halves = _rolling(x, self.w, halves=True)
-            sel = slice(self._stat_from - lo, upto - lo)
-            stats = np.empty((upto - self._stat_from, 12))
-            stats[:, 0:3] = mean[sel, 0:3]
-            stats[:, 3:9] = std[sel]
-            stats[:, 9:12] = halves[sel, 3:6]
+            stats = _stats_rows(x, d1, d2, self.w, slice(self._stat_from - lo, upto - lo))
             self._pending_rows.append(rows[self._stat_from:upto])
             self._pending_stats.append(stats)
             first = self._stat_index
             self._add_history(stats[(-first) % self.step::self.step])
             self._stat_index += upto - self._stat_from
             keep = max(0, upto - self.behind)
+            if keep > 0:  # the row before those kept, and its first difference
+                self._prev, self._prev_d1 = x[keep - 1 - lo].copy(), d1[keep - 1 - lo].copy()
             self._rows = rows[keep:]
             self._stat_from = upto - keep
         if self.levels is None and self._stat_index < self._learn_rows and not final:
@@ -396,12 +462,11 @@ class StreamingStill:
             if self._stat_index - self._levels_at >= max(1, self.rate_hz * 0.25) or final:
                 h = self._hist[:self._hist_n] if self._hist_n else np.vstack(self._pending_stats)
                 quantum = np.where(np.isfinite(self._quantum), self._quantum, 0.0)
-                self.levels = quiet_levels(h[:, 0:3], h[:, 3:6], h[:, 6:9], h[:, 9:12], self.rule, self.w,
-                                           quantum)
+                self.levels = quiet_levels(h, self.rule, self.w, quantum)
                 self._levels_at = self._stat_index
             assert self.levels is not None
             st = np.vstack(self._pending_stats)
-            ok = quiet_mask(st[:, 0:3], st[:, 3:6], st[:, 6:9], st[:, 9:12], self.levels, self.rule)
+            ok = quiet_mask(st, self.levels, self.rule)
             prs = np.concatenate(self._pending_rows)
             self._pending_rows, self._pending_stats = [], []
             self._q_rows = prs if self._q_rows is None else np.concatenate([self._q_rows, prs])
