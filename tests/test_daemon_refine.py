@@ -414,8 +414,13 @@ def test_a_warm_up_tumble_that_cannot_separate_the_rate_terms_is_calibrated_with
     after = h.unit.status()["drift_rms_compensated_dps"]
     for a in "xyz":
         assert after[a] * 20 <= raw[a], (a, raw[a] * DPH, after[a] * DPH)
-    # the next switch-on warms from 5 degC: with the first warm-up's information, every term is learnt
+    # the next switch-on warms from 5 degC: its bias stage keeps the held terms at 0 and says so; with
+    # the first warm-up's information, every term is learnt
     h.switch_on()
+    h.run(20, until=lambda h: h.store.latest(4242).version > rec.version)
+    bias = h.store.latest(4242)
+    assert bias.stats["validation"]["stage"] == "bias"
+    assert bias.identifiable["held_zero"] == ["dtemp", "temp*dtemp"], bias.identifiable
     h.run(150)
     last = h.store.latest(4242, acked_only=True)
     assert last is not None and last.version > rec.version

@@ -145,6 +145,9 @@ class Learner:
         # determined holds at 0 the terms the data cannot separate, once the session sets may_hold
         # (held_zero.py, and the module docstring)
         self.may_hold = False
+        # terms the stored set held at 0 (held_zero.py): still named while this session's set keeps them 0
+        ident = getattr(prior, "identifiable", None) if self.has_prior else None
+        self._prior_held = [n for n in (ident or {}).get("held_zero") or [] if n in self.names]
         # the session owes the unit its bias stage (the store could not record it): the stage stays
         # bias-only past full rank until it is pushed, as it would have been at the first still second
         self.owe_bias = False
@@ -358,6 +361,11 @@ class Learner:
         held = self.held_zero
         if held is not None:
             out["held_zero"] = held.names(self.names)
+        elif self._prior_held:  # a warm start keeps the stored set's held terms where its data is silent
+            c = self.coefficients
+            still_held = [n for n in self._prior_held if np.all(c[:, self.names.index(n)] == 0.0)]
+            if still_held:
+                out["held_zero"] = still_held
         return out
 
     @property
