@@ -323,7 +323,7 @@ def test_no_drift_alarm_beyond_the_held_set_s_range_where_a_refinement_is_due(tm
         def __len__(self) -> int:
             return 8
 
-        def rms_with(self, coeffs: object) -> np.ndarray:
+        def rms_with(self, coeffs: object, trim: float = 0.0) -> np.ndarray:
             return np.array([0.01, 0.001, 0.001])  # deg/s: x 3.6x its validated residual
 
     s.validated_rms = np.full(3, 0.001)

@@ -1130,3 +1130,26 @@ def test_a_switch_on_right_after_an_ack_keeps_the_ack_and_the_next_read_back_set
     rec = h.store.get(4242, v)
     assert rec.push["status"] == "acked" and rec.push["readback_ok"], rec.push
     assert h.session is not None and h.session.agreement["agree"] and h.session.warm_started_from == v
+
+
+def test_a_turn_too_slow_for_the_still_rule_raises_no_drift_alarm(tmp_path: Path) -> None:
+    """A vehicle rolling 0.06 deg between rests in 1.1 s (0.055 deg/s, under what one still window
+    can tell from noise): the move's block was taken for rest, 200 deg/h of true rate in it, and the
+    alarm read 44-80 deg/h where the unit left 0.02-0.2 (a fleet engineer's road drives: 28-87). The
+    alarm's RMS leaves out the quarter of blocks with the largest residual; a drift the set leaves is
+    in all of them."""
+    from gyrocal.sim.schedule import Schedule
+    from tests.test_still_rule import _tilted
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    h.run(3)
+    h.unit.schedule = Schedule(np.array([_tilted(0, 0), _tilted(0.06, 0), _tilted(0.06, 0.06),
+                                         _tilted(0, 0.06)]), 3.0, 1.1)
+    for _ in range(2):
+        h.switch_on()
+        h.run(60)
+        s = h.session
+        assert s is not None and not s.alarm, s.status()["monitor_rms_dps"]
+        assert max(h.unit.status()["drift_rms_compensated_dps"].values()) * 3600 < 2.0

@@ -132,12 +132,17 @@ class BlockWindow:
         """RMS over blocks of the unit's output mean [deg/s], per axis: the drift left in the output."""
         return self.rms_with(None)
 
-    def rms_with(self, coeffs_dps: np.ndarray | None) -> np.ndarray:
+    def rms_with(self, coeffs_dps: np.ndarray | None, trim: float = 0.0) -> np.ndarray:
         """RMS over blocks of raw minus the compensation ``coeffs_dps`` (3, P) would apply [deg/s]
-        (None: of the unit's output as sent)."""
+        (None: of the unit's output as sent); ``trim``: the share of blocks left out, those whose
+        residual is largest (by its norm over the axes), from 4 blocks on."""
         if not self.blocks:
             return np.full(3, np.nan)
-        return np.sqrt(np.mean(self.residuals(coeffs_dps) ** 2, axis=0))
+        r = self.residuals(coeffs_dps)
+        drop = int(trim * len(r)) if len(r) >= 4 else 0
+        if drop:
+            r = r[np.argsort(np.linalg.norm(r, axis=1), kind="stable")[:len(r) - drop]]
+        return np.sqrt(np.mean(r**2, axis=0))
 
     def paired_gain_z(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray) -> float:
         """How many standard errors the new set's gain is, paired per block: the mean over blocks of
