@@ -37,9 +37,9 @@ class StillRule:
     below ``k_std`` times its quiet level, the rolling gyro mean stays within
     max(``band_k`` x quiet, ``band_floor_dps``) of the still median (a constant-rate turn is not
     still), and every accelerometer axis has a rolling std below ``k_std`` times its quiet level
-    and a turn (the mean of the window's second half minus that of its first) below ``k_turn`` times
-    its quiet level (gravity turning). Still stretches then lose ``margin_s`` at each end and are dropped when
-    shorter than ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
+    and no axis turns within the window (``k_turn``: gravity on the accelerometer, the rate on the
+    gyro). Still stretches then lose ``margin_s`` at each end and are dropped when shorter than
+    ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
     no gyro is that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro
     mean exceeds ``max_rate_dps`` on any axis.
 
