@@ -1153,3 +1153,24 @@ def test_a_turn_too_slow_for_the_still_rule_raises_no_drift_alarm(tmp_path: Path
         s = h.session
         assert s is not None and not s.alarm, s.status()["monitor_rms_dps"]
         assert max(h.unit.status()["drift_rms_compensated_dps"].values()) * 3600 < 2.0
+
+
+def test_a_unit_holding_another_term_list_says_why_it_waits_for_a_full_set(tmp_path: Path) -> None:
+    """A unit holding a 14-term set while the daemon learns seed 000's, at one pose: it is not given a
+    constant alone (that would replace its curve), and the reason said only "rank 1 < 9" (an
+    integrator's check)."""
+    from gyrocal.protocol.messages import CoeffWrite
+    from gyrocal.protocol.termsets import EXTENDED_TEMP_ID
+    from gyrocal.sim.schedule import still
+    from gyrocal.sim.unit import VirtualUnit
+
+    h = Harness.make(tmp_path)
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    curve = np.zeros((3, 14))
+    curve[:, 0], curve[:, 10] = 0.01, 1e-4  # a constant and a temperature slope [deg/s, deg/s/degC]
+    h.unit.applied = VirtualUnit._build(CoeffWrite(7, EXTENDED_TEMP_ID, curve.tolist()))
+    h.switch_on()
+    h.run(10)
+    s = h.session
+    assert s is not None and s.warm_started_from is None and not s.last_push
+    assert "rank 1 < 9" in s.reason and "of other terms (0x549E)" in s.reason, s.reason

@@ -609,11 +609,17 @@ class Session(RecoveryMixin):
         if not lr.cold_bias or lr.cold_ready or self._bias_pushed or self.validated_rms is not None \
                 or lr.samples == 0:
             return ""
-        if self.applied is None or self.applied.beyond_constant():
+        if self.applied is None:
+            return ""
+        if self.applied.beyond_constant():
             # a curve the unit holds (a factory calibration, another tool's thermal one) is not replaced
             # by a constant; a constant it holds (PX4's CAL_GYRO offsets) is, when the new one removes
-            # enough drift (the gate)
-            return ""
+            # enough drift (the gate). Said: a unit holding another term list at one pose waited with
+            # only "rank 1 < 9" to show for it (an integrator's check)
+            held = "" if self.applied.terms_id == terms_id(self.names) else \
+                f" of other terms (0x{self.applied.terms_id:04X})"
+            return (f"; the unit holds v{self.applied.version}, a set{held} beyond a constant, which a "
+                    "constant alone would replace: the first set here is a full one")
         rank = lr.rank
         if rank >= lr.full_rank or lr.held_zero is not None:
             # the data has reached the rank (or that of the terms not held at 0): a full set is what is
