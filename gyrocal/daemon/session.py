@@ -273,6 +273,8 @@ class Session(RecoveryMixin):
         self._rank_since: tuple[int, float] = (-1, float("nan"))  # (rank, unit time [s] it was reached)
         self._range_pushed: tuple[float, float] | None = None  # temp_seen [degC] at the last full set
         self._rank_validated = 0  # the learner's rank at the last validation (an early one when it grows)
+        self._relearned_at = float("-inf")  # unit time [s] learning last started again on an alarm
+        self._relearning = False  # ... and its bias stage is due (_relearn_after_alarm)
         self._held_said: list[str] = []  # the terms held at 0 that the log has named (HOLD_STALL_S)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
@@ -1081,7 +1083,8 @@ class Session(RecoveryMixin):
         """A warm start's bias-only set is due: first still second seen, not pushed yet this session
         (or pushed on some axes only, ``_bias_partial``: the others when theirs gains)."""
         return (bool(self.cfg.push.get("bias_first", True)) and not self._bias_pushed
-                and self.learner.bias_only and (self.validated_rms is None or self._bias_partial)
+                and self.learner.bias_only
+                and (self.validated_rms is None or self._bias_partial or self._relearning)
                 and self.learner.samples >= self.BIAS_MIN_S * self.rate_hz and len(self.monitor) >= 2
                 # a partial stage whose validation failed waits as a full set does (it was tried again at
                 # every tick, 8 log lines a second: a serial integrator's re-check)
@@ -1096,6 +1099,7 @@ class Session(RecoveryMixin):
             return
         self._bias_partial = self._keep_held is not None
         self._bias_pushed = not self._bias_partial
+        self._relearning = False
         if self._bias_partial and why != self._bias_said:
             self._bias_said = why
             log.info("unit %s: %s", self.hello.serial, why)
@@ -1538,7 +1542,49 @@ class Session(RecoveryMixin):
             # in deg/h, as every other drift figure of the log (an operator's soak found them mixed)
             log.warning("unit %s: drift alarm: residual %s deg/h exceeds %s deg/h", self.hello.serial,
                         "/".join(f"{v:.3g}" for v in rms * DPH), "/".join(f"{v:.3g}" for v in limit * DPH))
+            self._relearn_after_alarm()
         self.alarm = alarm
+
+    RELEARN_MIN_S = 30.0
+    """Unit time [s] between two restarts of learning on a drift alarm (``_relearn_after_alarm``)."""
+
+    def _relearn_after_alarm(self) -> None:
+        """A drift alarm: the unit's drift has moved since its set was validated (a shock, a step of its
+        bias). Learning on every sample since switch-on, the next set averaged the old bias with the new:
+        it took 56 of a 100 deg/h step on x, its held-out RMS became the alarm's reference, and the unit
+        was left 46 deg/h off with the alarm off and status predicting 0.3 (an outside re-check). So
+        learning starts again from the set the unit holds, as at a warm switch-on: its bias stage on the
+        samples from here, then a full set when they support one. Not for a constant alone (off at other
+        poses by design: docs/operations.md), and once per RELEARN_MIN_S."""
+        held = self._applied_coeffs()
+        if held is None or _constant_only(self.names, held) or self.applied is None \
+                or self._t_last - self._relearned_at < self.RELEARN_MIN_S:
+            return
+        prior: Any = None
+        try:
+            rec = self.store.get(self.hello.serial, self.applied.version)
+            if rec is not None and rec.push.get("status") in APPLIED_STATUSES:
+                prior = rec
+        except Exception:  # the store is unavailable: the unit's coefficients, as for an unknown set
+            prior = None
+        if prior is None:
+            prior = CalibrationRecord(serial=self.hello.serial, version=self.applied.version,
+                                      terms=list(self.names), coefficients_dps=held.tolist(),
+                                      uncertainty_dps=[[None] * len(self.names)] * 3,
+                                      stats={"predicted_drift_dph": {"left_sphere": {a: float("inf")
+                                                                                    for a in "xyz"}}},
+                                      push={"status": "unit"})
+        learner = Learner(self.cfg, prior, self.rate_hz)
+        if learner.prior is None:
+            return
+        self.learner = learner
+        self._relearned_at = self._t_last
+        self._new_blocks()
+        self.monitor.clear()
+        self._bias_pushed, self._bias_partial, self._relearning = False, False, True
+        self._next_validation_at, self._rank_validated = 0, 0
+        log.info("unit %s: learning starts again from v%d, the set it holds: its bias stage on the samples "
+                 "from the alarm on", self.hello.serial, self.applied.version)
 
     def _applied_coeffs(self) -> np.ndarray | None:
         """The unit's set in this session's term order (a held subset is padded with zeros), or None if
