@@ -434,6 +434,24 @@ class Session(RecoveryMixin):
             log.info("unit %s already holds v%d: no retry needed", self.hello.serial, msg.version)
             self._retry = None
 
+    def _held_prior(self, version: int, coeffs: np.ndarray, stored: bool) -> tuple[Any, bool]:
+        """The set the unit holds as a prior for a new learner: the store's applied record of it (when
+        ``stored`` says to look and the store has one), else a record of the unit's coefficients [deg/s]
+        whose quality off the poses seen is not known (no sphere figure). And whether it is the store's."""
+        if stored:
+            try:
+                rec = self.store.get(self.hello.serial, version)
+            except Exception:  # the store is unavailable: the unit's coefficients, as for an unknown set
+                rec = None
+            if rec is not None and rec.push.get("status") in APPLIED_STATUSES:
+                return rec, True
+        inf = {a: float("inf") for a in "xyz"}
+        return CalibrationRecord(serial=self.hello.serial, version=version, terms=list(self.names),
+                                 coefficients_dps=np.asarray(coeffs, dtype=float).tolist(),
+                                 uncertainty_dps=[[None] * len(self.names)] * 3,
+                                 stats={"predicted_drift_dph": {"left_sphere": inf}},
+                                 push={"status": "unit"}), False
+
     def _adopt_unit_set(self, msg: CoeffReport) -> None:
         """The set the unit holds is the warm start's prior when it is not the one the session started
         from (the store's last held set, or none), before anything is learnt or pushed.
@@ -462,23 +480,10 @@ class Session(RecoveryMixin):
         if coeffs.shape != (3, len(self.names)) or not np.all(np.isfinite(coeffs)):
             return
         was = "none" if self.warm_started_from is None else f"v{self.warm_started_from}"
-        prior: Any = None
-        if known:
-            try:
-                prior = self.store.get(self.hello.serial, msg.version)
-            except Exception:  # the store is unavailable: the unit's coefficients, as for an unknown set
-                prior = None
-        if prior is not None:
-            why = f"the store's v{msg.version}, which the unit holds (the session started from {was})"
-        else:
-            inf = {a: float("inf") for a in "xyz"}  # nothing says how good it is off the poses seen
-            prior = CalibrationRecord(serial=self.hello.serial, version=msg.version, terms=list(self.names),
-                                      coefficients_dps=coeffs.tolist(),
-                                      uncertainty_dps=[[None] * len(self.names)] * 3,
-                                      stats={"predicted_drift_dph": {"left_sphere": inf}},
-                                      push={"status": "unit"})
-            why = (f"the unit's own v{msg.version}, which the store has no acked record of (the session "
-                   f"started from {was})")
+        prior, stored = self._held_prior(msg.version, coeffs, known)
+        why = (f"the store's v{msg.version}, which the unit holds (the session started from {was})" if stored
+               else f"the unit's own v{msg.version}, which the store has no acked record of (the session "
+                    f"started from {was})")
         learner = Learner(self.cfg, prior, self.rate_hz)
         if learner.prior is None:
             return
@@ -1560,21 +1565,7 @@ class Session(RecoveryMixin):
         if held is None or _constant_only(self.names, held) or self.applied is None \
                 or self._t_last - self._relearned_at < self.RELEARN_MIN_S:
             return
-        prior: Any = None
-        try:
-            rec = self.store.get(self.hello.serial, self.applied.version)
-            if rec is not None and rec.push.get("status") in APPLIED_STATUSES:
-                prior = rec
-        except Exception:  # the store is unavailable: the unit's coefficients, as for an unknown set
-            prior = None
-        if prior is None:
-            prior = CalibrationRecord(serial=self.hello.serial, version=self.applied.version,
-                                      terms=list(self.names), coefficients_dps=held.tolist(),
-                                      uncertainty_dps=[[None] * len(self.names)] * 3,
-                                      stats={"predicted_drift_dph": {"left_sphere": {a: float("inf")
-                                                                                    for a in "xyz"}}},
-                                      push={"status": "unit"})
-        learner = Learner(self.cfg, prior, self.rate_hz)
+        learner = Learner(self.cfg, self._held_prior(self.applied.version, held, True)[0], self.rate_hz)
         if learner.prior is None:
             return
         self.learner = learner
