@@ -1009,11 +1009,17 @@ class Session(RecoveryMixin):
             log.warning("unit %s: the horizontal Earth rate fitted is %.2f x that of site.latitude_deg "
                         "%.4g: check the latitude", self.hello.serial, e.fit_magnitude, e.latitude_deg)
         self._held_has_north = self.validated_rms is not None  # a set of this session is held
-        self.learner = self.learner.fresh()
+        self._learn_again(self.learner.fresh())
+
+    def _learn_again(self, learner: Learner) -> None:
+        """Learning starts again with ``learner``: new blocks, an empty monitor, the next validation due
+        once the new data supports one (north found; a drift alarm)."""
+        self.learner = learner
         self._new_blocks()
         self.monitor.clear()
         self._next_validation_at = 0
         self._validated_at = 0
+        self._rank_validated = 0
         self._said_converged = False
         if self.state in (State.CONVERGED, State.VALIDATING):
             self.state = State.COLLECTING
@@ -1568,12 +1574,9 @@ class Session(RecoveryMixin):
         learner = Learner(self.cfg, self._held_prior(self.applied.version, held, True)[0], self.rate_hz)
         if learner.prior is None:
             return
-        self.learner = learner
+        self._learn_again(learner)
         self._relearned_at = self._t_last
-        self._new_blocks()
-        self.monitor.clear()
         self._bias_pushed, self._bias_partial, self._relearning = False, False, True
-        self._next_validation_at, self._rank_validated = 0, 0
         log.info("unit %s: learning starts again from v%d, the set it holds: its bias stage on the samples "
                  "from the alarm on", self.hello.serial, self.applied.version)
 

@@ -272,9 +272,9 @@ def _stats_rows(x: np.ndarray, d1: np.ndarray, d2: np.ndarray, w: int, sel: slic
     mean, std, halves = _rolling(np.hstack([x, d1, d2]), w, halves=True)
     out = np.empty((sel.stop - sel.start, STATS_COLUMNS))
     out[:, GYRO_MEAN] = mean[sel, 0:3]
-    out[:, 3:9] = std[sel, 0:6]
-    out[:, 9:15] = halves[sel, 0:6]
-    out[:, 15:27] = std[sel, 6:18]
+    out[:, 3:9] = std[sel, 0:6]  # GYRO_STD, ACCEL_STD
+    out[:, 9:15] = halves[sel, 0:6]  # GYRO_TURN, ACCEL_TURN
+    out[:, 15:27] = std[sel, 6:18]  # GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2
     return out
 
 
@@ -288,14 +288,15 @@ def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
     gives (``turn_noise``, from its differences, blind to a steady turn), floored like the spread: a
     quantised axis at white noise's 2 (quantum / 2) / sqrt(w).
     """
-    cols = np.r_[3:9, 15:27]
-    q = np.quantile(stats[:, cols], rule.quantile, axis=0)  # per column, one call
-    gq = np.maximum(q[0:3], 1e-9)
+    cols = np.r_[GYRO_STD, ACCEL_STD, GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2]
+    q = np.full(STATS_COLUMNS, np.nan)
+    q[cols] = np.quantile(stats[:, cols], rule.quantile, axis=0)  # per column, one call
+    gq = np.maximum(q[GYRO_STD], 1e-9)
     floor = np.maximum(1e-6, 0.5 * (np.zeros(3) if accel_quantum_g is None else accel_quantum_g))
-    aq = np.maximum(q[3:6], floor)
+    aq = np.maximum(q[ACCEL_STD], floor)
     white = 2.0 / np.sqrt(max(w, 1))
-    turn_dps = np.maximum(turn_noise(q[6:9], q[12:15], w), 1e-12)
-    turn_g = np.maximum(turn_noise(q[9:12], q[15:18], w), white * floor)
+    turn_dps = np.maximum(turn_noise(q[GYRO_D1], q[GYRO_D2], w), 1e-12)
+    turn_g = np.maximum(turn_noise(q[ACCEL_D1], q[ACCEL_D2], w), white * floor)
     mean, std = stats[:, GYRO_MEAN], stats[:, GYRO_STD]
     centre = np.empty(3)
     slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
