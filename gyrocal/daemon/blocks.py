@@ -144,6 +144,27 @@ class BlockWindow:
             r = r[np.argsort(np.linalg.norm(r, axis=1), kind="stable")[:len(r) - drop]]
         return np.sqrt(np.mean(r**2, axis=0))
 
+    def paired_rms(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray | None,
+                   trim: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """RMS over the same blocks of raw minus what ``old_coeffs_dps`` and ``new_coeffs_dps`` (3, P)
+        would apply [deg/s], per axis (None: the unit's output as sent); ``trim``: the share of blocks
+        left out, those whose residual is largest under the better of the two sets (the smaller norm
+        over the axes), from 4 blocks on.
+
+        Why the better of the two: a block that neither set explains (a slow turn taken for rest, its
+        true rate in the block) says nothing about which set is better, and it swamped both totals (a
+        refinement refused quoting 64-93 deg/h where the unit left 0.02-0.2). A block where one set is
+        wrong and the other right keeps its weight, whichever set is wrong."""
+        if not self.blocks:
+            return np.full(3, np.nan), np.full(3, np.nan)
+        old, new = self.residuals(old_coeffs_dps), self.residuals(new_coeffs_dps)
+        drop = int(trim * len(old)) if len(old) >= 4 else 0
+        if drop:
+            score = np.minimum(np.linalg.norm(old, axis=1), np.linalg.norm(new, axis=1))
+            kept = np.argsort(score, kind="stable")[:len(old) - drop]
+            old, new = old[kept], new[kept]
+        return np.sqrt(np.mean(old**2, axis=0)), np.sqrt(np.mean(new**2, axis=0))
+
     def paired_gain_z(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray) -> float:
         """How many standard errors the new set's gain is, paired per block: the mean over blocks of
         the squared residual (summed over the axes) with ``old_coeffs_dps`` (3, P) minus with

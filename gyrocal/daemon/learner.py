@@ -154,6 +154,14 @@ class Learner:
         self._sum_res = np.zeros(3)  # sums of the stored set's residual [deg/s], for the bias
         self._sum_res2 = np.zeros(3)
         self._n = 0
+        # the same residual's means over blocks of SCATTER_BLOCK_S of trained samples: their scatter is
+        # the bias's error when the residual is not white (``_bias_sigma``)
+        self._chunk = max(2, int(round(self.SCATTER_BLOCK_S * rate_hz)))
+        self._part = np.zeros(3)  # the sum [deg/s] over the block being filled, and its samples
+        self._part_n = 0
+        self._n_blocks = 0  # blocks done, and the sums of their means and of their squares [deg/s]
+        self._blk_sum = np.zeros(3)
+        self._blk_sum2 = np.zeros(3)
         self.prior_left = self._prior_left(prior) if self.has_prior else {}
         # earlier warm-ups' information on the temperature terms (module docstring)
         self.prior_info: dict[str, Any] | None = None
@@ -262,6 +270,44 @@ class Learner:
             self._sum_res += res[ok].sum(axis=0)
             self._sum_res2 += (res[ok] ** 2).sum(axis=0)
             self._n += int(ok.sum())
+            self._add_blocks(res[ok])
+
+    def _add_blocks(self, res: np.ndarray) -> None:
+        """Cut the residual (N, 3) [deg/s] into blocks of ``_chunk`` samples; keep their means' sums."""
+        i = 0
+        while i < len(res):
+            j = min(len(res), i + self._chunk - self._part_n)
+            self._part += res[i:j].sum(axis=0)
+            self._part_n += j - i
+            if self._part_n == self._chunk:
+                m = self._part / self._chunk
+                self._n_blocks += 1
+                self._blk_sum += m
+                self._blk_sum2 += m * m
+                self._part, self._part_n = np.zeros(3), 0
+            i = j
+
+    SCATTER_BLOCK_S = 0.25
+    MIN_SCATTER_BLOCKS = 4
+    """Blocks of SCATTER_BLOCK_S [s] of residual the bias's error needs before their scatter may raise
+    it above white noise's (a second of rest: a bias stage comes 1.6 s after a warm switch-on)."""
+
+    def _bias_sigma(self) -> np.ndarray:
+        """The bias stage's error (3,) [deg/s]: the standard error of the mean residual, white noise's
+        (the per-sample variance over n), or, from MIN_SCATTER_BLOCKS blocks on, that of the block means
+        when larger. Why: a warm-up's lag, or a slow turn taken for rest (one the still rule cannot see:
+        model/still.py), puts a drift in a few blocks that white noise's error says nothing of; at a
+        white error of 4.5 deg/h a bias stage moved y by 90.8 deg/h on such a turn and pushed it, and
+        another made an axis worse (1.00 -> 3.22 deg/h) on a warm-up's lag (a fleet engineer's check)."""
+        mean = self._sum_res / self._n
+        var = np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
+        sig = np.sqrt(var / self._n)
+        k = self._n_blocks
+        if k >= self.MIN_SCATTER_BLOCKS:
+            bm = self._blk_sum / k
+            bvar = np.maximum(self._blk_sum2 / k - bm**2, 0.0) * k / (k - 1)
+            sig = np.fmax(sig, np.sqrt(bvar / k))
+        return sig
 
     @property
     def cold_bias(self) -> bool:
@@ -333,9 +379,7 @@ class Learner:
     def uncertainty(self) -> np.ndarray:
         if self.bias_only:
             sig = np.full((3, len(self.names)), np.inf)  # held at the stored values, not learnt here
-            mean = self._sum_res / self._n
-            var = np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
-            sig[:, self.const] = np.sqrt(var / self._n)
+            sig[:, self.const] = self._bias_sigma()
             return sig
         held = self.held_zero
         if held is not None:  # the kept terms' own 1-sigma; a term held at 0 is not determined

@@ -1146,8 +1146,8 @@ class Session(RecoveryMixin):
             learnt = np.where(keep[:, None], applied, learnt)  # the axes whose bias has not moved
         self._projection = proj = project(self.names, learnt, held, poses)
         coeffs = proj.embedded_dps
-        rms_old = blocks.rms_with(applied)  # None: the unit's output as sent
-        rms_new = blocks.rms_with(coeffs)
+        # None: the unit's output as sent
+        rms_old, rms_new = blocks.paired_rms(applied, coeffs, self.VALIDATION_TRIM)
         g = self._gate_result
         refining = stage == "full" and g is not None and self._held_info()[0] is not None
         worse = ~refine.axes_not_worse(rms_old, rms_new) if refining else np.zeros(3, dtype=bool)
@@ -1159,7 +1159,7 @@ class Session(RecoveryMixin):
             learnt = np.where(keep[:, None], applied, learnt)
             self._projection = proj = project(self.names, learnt, held, poses)
             coeffs = proj.embedded_dps
-            rms_new = blocks.rms_with(coeffs)
+            rms_old, rms_new = blocks.paired_rms(applied, coeffs, self.VALIDATION_TRIM)
             worse = ~refine.axes_not_worse(rms_old, rms_new)
         old2, new2 = float(np.sum(rms_old**2)), float(np.sum(rms_new**2))
         need = (1.0 - self.cfg.validation["min_improvement"]) ** 2
@@ -1520,6 +1520,10 @@ class Session(RecoveryMixin):
             self._forget_set()  # read back what the unit holds, don't assume it
             self._read_asks = 0
             self.request_read(now)
+
+    VALIDATION_TRIM = 0.25
+    """Validation compares the sets over the held-out blocks but this share, those that neither set
+    explains (``BlockWindow.paired_rms``): a slow turn the still rule cannot see, as for the alarm."""
 
     ALARM_TRIM = 0.25
     """The drift alarm's RMS leaves out this share of the monitor's blocks, those with the largest
