@@ -80,12 +80,16 @@ def test_the_noise_level_is_learnt_and_tracked_when_it_changes() -> None:
 
 
 def test_a_unit_moving_from_switch_on_is_not_called_still() -> None:
-    """Constant rotation for the first seconds: no sample of it may be still (rate above the band)."""
+    """Constant rotation for the first seconds: no sample of it may be still (rate above the band).
+    With gravity unchanged the turn is about the vertical (across it, gravity would turn too)."""
     rate = 200.0
     c = _log(0.1, rate, 10.0)
     rows = _rows(c)
     spin = np.arange(rows.size) < int(4 * rate)
-    rows["wz"][spin] += 20.0  # a 20 deg/s turn, gravity unchanged
+    g = np.column_stack([rows["ax"], rows["ay"], rows["az"]])[spin]
+    up = g / np.linalg.norm(g, axis=1)[:, None]
+    for i, a in enumerate("xyz"):
+        rows[f"w{a}"][spin] += 20.0 * up[:, i]  # a 20 deg/s turn about the vertical
     det = StreamingStill(rate)
     still = _stream(det, rows, seed=3)
     assert not np.any(still[spin])
@@ -159,3 +163,26 @@ def test_a_unit_rocking_from_switch_on_is_never_still() -> None:
     c = SessionStream(TruthModel(), sched, rate, seed=3, boot=1).chunk(int(40 * rate))
     assert not detect_still(c, rate).any()
     assert not _stream(StreamingStill(rate), _rows(c), 7).any()
+
+
+def test_a_large_zero_rate_offset_across_gravity_is_still_and_a_turn_about_the_vertical_is_not() -> None:
+    """An MPU-6050 at rest with a 17 deg/s zero-rate offset on x (within its +-20), z up: the 10 deg/s
+    cap on every axis refused the whole log ("only 0 still samples", an outside check). The cap now
+    holds along gravity, where nothing else shows a turn; across it a turn turns gravity."""
+    rate, n = 100.0, 6000
+    rng = np.random.default_rng(3)
+    t = np.arange(n) / rate
+    accel = np.column_stack([rng.normal(0, 0.002, n), rng.normal(0, 0.002, n), 1 + rng.normal(0, 0.002, n)])
+
+    def cols(gyro: np.ndarray, acc: np.ndarray) -> dict[str, np.ndarray]:
+        return {"t": t, **{f"w{a}": gyro[:, i] for i, a in enumerate("xyz")},
+                **{f"a{a}": acc[:, i] for i, a in enumerate("xyz")}}
+
+    noise = rng.normal(0, 0.05, (n, 3))
+    offset_x = noise + np.array([17.0, 0.4, -0.8])
+    assert detect_still(cols(offset_x, accel), rate).mean() > 0.9
+    yaw = noise + np.array([0.4, -0.8, 17.0])  # the same figure about the vertical: a turn
+    assert not detect_still(cols(yaw, accel), rate).any()
+    ang = np.radians(17.0) * t  # a real 17 deg/s roll about x: gravity turns in y-z
+    rolled = np.column_stack([accel[:, 0], np.sin(ang) + accel[:, 1] * 0, np.cos(ang)])
+    assert not detect_still(cols(offset_x, rolled), rate).any()

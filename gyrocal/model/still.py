@@ -41,7 +41,8 @@ class StillRule:
     gyro). Still stretches then lose ``margin_s`` at each end and are dropped when shorter than
     ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
     no gyro is that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro
-    mean exceeds ``max_rate_dps`` on any axis.
+    mean exceeds ``max_rate_dps`` along gravity (the rolling accelerometer mean; on every axis when
+    there is none).
 
     A rest therefore yields still samples only when it lasts at least window + 2 margins + min_run
     (1.1 s with the defaults). The margins and minimum length are what hand-held real data needs
@@ -58,8 +59,11 @@ class StillRule:
     band_floor_dps: float = 0.5
     max_quiet_dps: float = 5.0
     max_rate_dps: float = 10.0
-    """A rolling gyro mean beyond this [deg/s] is a turn, whatever the learnt centre: a unit that
-    switches on turning would otherwise learn the turn as its bias (MEMS biases are a few deg/s)."""
+    """A rolling gyro mean beyond this [deg/s] along gravity is a turn, whatever the learnt centre: a
+    unit that switches on turning about the vertical would otherwise learn the turn as its bias (MEMS
+    biases are a few deg/s), and nothing else shows such a turn. Across gravity a turn turns gravity,
+    which ``k_turn`` sees; there the cap refused an MPU-6050 log at rest whose x zero-rate offset was
+    17 deg/s (within its +-20: "only 0 still samples", an outside check)."""
     k_turn: float = 8.0
     """Turning within a window: an axis whose second-half mean differs from its first-half mean by more
     than this many times what noise alone gives at rest, on the accelerometer [g] (gravity turning)
@@ -96,7 +100,8 @@ RHO_MAX = 0.9
 GYRO_MEAN, GYRO_STD, ACCEL_STD = slice(0, 3), slice(3, 6), slice(6, 9)
 GYRO_TURN, ACCEL_TURN = slice(9, 12), slice(12, 15)
 GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2 = slice(15, 18), slice(18, 21), slice(21, 24), slice(24, 27)
-STATS_COLUMNS = 27
+ACCEL_MEAN = slice(27, 30)
+STATS_COLUMNS = 30
 
 
 def turn_noise(d1_std: np.ndarray, d2_std: np.ndarray, w: int) -> np.ndarray:
@@ -245,7 +250,8 @@ def _rolling(x: np.ndarray, w: int, halves: bool = False) -> tuple[np.ndarray, .
 def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> np.ndarray:
     """Rolling statistics over w samples, a row (STATS_COLUMNS,) per sample: gyro mean [deg/s], gyro
     and accel std [deg/s, g], gyro and accel turn (the window's second-half mean minus its first's),
-    and the std of the gyro's and accel's first and second differences (0 before the first sample)."""
+    and the std of the gyro's and accel's first and second differences (0 before the first sample),
+    and the accel mean [g]."""
     x = np.hstack([np.asarray(gyro, dtype=float), np.asarray(accel, dtype=float)])
     return _stats_rows(x, *_differences(x, None, None), w, slice(0, len(x)))
 
@@ -275,7 +281,18 @@ def _stats_rows(x: np.ndarray, d1: np.ndarray, d2: np.ndarray, w: int, sel: slic
     out[:, 3:9] = std[sel, 0:6]  # GYRO_STD, ACCEL_STD
     out[:, 9:15] = halves[sel, 0:6]  # GYRO_TURN, ACCEL_TURN
     out[:, 15:27] = std[sel, 6:18]  # GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2
+    out[:, ACCEL_MEAN] = mean[sel, 3:6]
     return out
+
+
+def _slow(stats: np.ndarray, rule: StillRule) -> np.ndarray:
+    """Per row (N,): the rolling gyro mean is within ``max_rate_dps`` along gravity (the rolling
+    accelerometer mean, from 0.5 g), or on every axis where there is no such gravity (StillRule)."""
+    g, a = stats[:, GYRO_MEAN], stats[:, ACCEL_MEAN]
+    norm = np.linalg.norm(a, axis=1)
+    has_g = np.isfinite(norm) & (norm > 0.5)
+    along = np.abs(np.einsum("ij,ij->i", g, a)) / np.where(has_g, norm, 1.0)
+    return np.where(has_g, along < rule.max_rate_dps, np.all(np.abs(g) < rule.max_rate_dps, axis=1))
 
 
 def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
@@ -299,7 +316,7 @@ def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
     turn_g = np.maximum(turn_noise(q[ACCEL_D1], q[ACCEL_D2], w), white * floor)
     mean, std = stats[:, GYRO_MEAN], stats[:, GYRO_STD]
     centre = np.empty(3)
-    slow = np.all(np.abs(mean) < rule.max_rate_dps, axis=1)  # a turn never sets the centre
+    slow = _slow(stats, rule)  # a turn never sets the centre
     for k in range(3):
         sel = (std[:, k] < rule.k_std * gq[k]) & slow
         centre[k] = np.median(mean[sel, k]) if np.any(sel) else 0.0
@@ -312,7 +329,7 @@ def quiet_mask(stats: np.ndarray, lv: QuietLevels, rule: StillRule) -> np.ndarra
     band = np.maximum(rule.band_k * lv.gyro_dps, rule.band_floor_dps)
     ok = np.all(stats[:, GYRO_STD] < rule.k_std * lv.gyro_dps, axis=1)
     ok &= np.all(np.abs(mean - lv.centre_dps) < band, axis=1)
-    ok &= np.all(np.abs(mean) < rule.max_rate_dps, axis=1)
+    ok &= _slow(stats, rule)
     ok &= np.all(stats[:, ACCEL_STD] < rule.k_std * lv.accel_g, axis=1)
     ok &= np.all(np.abs(stats[:, ACCEL_TURN]) < rule.k_turn * lv.turn_g, axis=1)
     ok &= np.all(np.abs(stats[:, GYRO_TURN]) < rule.k_turn * lv.turn_dps, axis=1)
