@@ -317,7 +317,10 @@ def _allan_terms(prob: Problem, resid: np.ndarray) -> dict:
                            "rate_random_walk": "deg/s/sqrt(s)",
                            "note": "x 60 for deg/sqrt(h), x 3600 for deg/h, x 216000 for deg/h/sqrt(h); a "
                                    "term with seen false is not shown by the curve: value null, hi an "
-                                   "upper bound"}}
+                                   "upper bound",
+                           "intervals": "lo..hi: 1 sigma (68.3 %), chi-squared on the read's best point; "
+                                        "joint_fit: 1 sigma from the fit's covariance; a term not seen: "
+                                        "hi bounds it at 97.5 % (K: the last tau's)"}}
     top_s = resid.shape[0] / prob.rate_hz / 10  # the fidelity's range: a tenth of the used span
     for k, a in enumerate(AXES):
         curve = allan_curve(resid[:, k], prob.rate_hz)

@@ -292,7 +292,7 @@ def read_noise_terms(curve: AllanCurve) -> NoiseTerms:
     b = NoiseTerm(float(curve.adev[i_min] / FLICKER_FLOOR), float(curve.lo[i_min] / FLICKER_FLOOR),
                   float(curve.hi[i_min] / FLICKER_FLOOR), (float(curve.tau_s[i_min]),))
     if floor is None:
-        b = NoiseTerm(float("nan"), 0.0, b.hi, b.tau_s, seen=False)
+        b = NoiseTerm(float("nan"), 0.0, float(hi95[i_min] / FLICKER_FLOOR), b.tau_s, seen=False)  # 97.5 %
     # RRW: a +1/2 rise past the minimum (points of that slope, or points above the minimum by their
     # 95 % intervals), else the +1/2 line through the last point's upper bound
     rise = np.flatnonzero((k > i_min) & ((np.abs(local - 0.5) <= SLOPE_TOL) | (lo95 > hi95[i_min])))
