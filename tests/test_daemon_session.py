@@ -1252,3 +1252,26 @@ def test_a_vehicle_settling_slowly_at_switch_on_does_not_give_its_turn_as_the_bi
     s = h.session
     assert s is not None and s.last_push.get("status") == "acked"
     assert left["y"] * 3600 < 1.0 and left["z"] * 3600 < 1.0, left
+
+
+def test_the_drift_alarm_line_gives_what_the_newest_rests_are_left_with(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A 21.6 deg/h step of the x bias at rest: the alarm's window still held the blocks from before
+    the step, and its line said 8.1 deg/h (a fleet engineer's check). It also gives the last 2 s."""
+    from gyrocal.sim.schedule import still
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    h.switch_on()
+    h.run(20)
+    s = h.session
+    assert s is not None and s.last_push.get("status") == "acked" and not s.alarm
+    h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([21.6, 0.0, 0.0]) / 3600.0
+    with caplog.at_level(logging.WARNING):
+        h.run(15, until=lambda h: bool(h.session and h.session.alarm))
+    line = next(r.getMessage() for r in caplog.records if "drift alarm" in r.getMessage())
+    window = float(line.split("residual ")[1].split("/")[0])
+    recent = float(line.split("rests: ")[1].split("/")[0])
+    assert window < recent and 15.0 < recent < 30.0, line
