@@ -297,8 +297,9 @@ class Learner:
         (the per-sample variance over n), or, from MIN_SCATTER_BLOCKS blocks on, that of the block means
         when larger. Why: a warm-up's lag, or a slow turn taken for rest (one the still rule cannot see:
         model/still.py), puts a drift in a few blocks that white noise's error says nothing of; at a
-        white error of 4.5 deg/h a bias stage moved y by 90.8 deg/h on such a turn and pushed it, and
-        another made an axis worse (1.00 -> 3.22 deg/h) on a warm-up's lag (a fleet engineer's check)."""
+        white error of 4.5 deg/h a bias stage moved y by 90.8 deg/h on such a turn and pushed it; one
+        that moved an axis 4.22 deg/h on an error of 1.04 made it worse, 1.00 -> 3.22 deg/h (a fleet
+        engineer's check)."""
         mean = self._sum_res / self._n
         var = np.maximum(self._sum_res2 / self._n - mean**2, 0.0)
         sig = np.sqrt(var / self._n)
