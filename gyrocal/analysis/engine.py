@@ -268,9 +268,12 @@ def look_alikes(cause: str, axes: list[str],
         # significant at the family level, not the per-test one: a warm-up that explained 37.1 % where
         # the named temperature explained 37.2 % (p = 9.5e-4, its time constant costing it power) was
         # left out, and the finding claimed a cause the log could not single out (an outside check)
+        # a covariate's p with the walk re-estimated counts too, where it was computed (the
+        # selection can name a covariate by that test: causes._covariates_against_walk)
         alike = [(c, f["explained_fraction"]) for c, f in r.first.items()
                  if c not in chosen and c not in ("random_walk", "periodic") and f["p_value"] is not None
-                 and f["p_value"] < FAMILY_ALPHA and f["explained_fraction"] >= bar]
+                 and min(f["p_value"], f.get("p_value_against_walk", 1.0)) < FAMILY_ALPHA
+                 and f["explained_fraction"] >= bar]
         if alike:
             out[a] = sorted(alike, key=lambda x: -x[1])
     return out

@@ -489,3 +489,66 @@ def walk_lr(lr: AxisLR, chosen: list[str]) -> WalkLR:
             d, q = walk_profile(lr.prob, null, x, y)
         lr.walks[key] = WalkLR(float(q[0]), float(d[0]), chibar_p(float(d[0])), null)
     return lr.walks[key]
+
+
+# --- covariates weighed against the walk (outside check H1, 2026-11-27) -----------------------------
+
+def _walk_profiled_ml(lr: AxisLR, null: NoiseModel, causes: list[str] | tuple[str, ...]) -> float | None:
+    """The largest log-likelihood (ML, up to a constant shared by every design) of baseline + ``causes``
+    on this axis' block means, with the white level and the walk intensity both re-estimated.
+
+    V = s (I + lam W) on the block means (see ``block_means``, ``walk_profile_profiled``); the scale s
+    is profiled out (s = Q / n), lam runs over ``walk_grid`` of ``null`` (0 included, a parabola
+    refines the best point). ML, not REML: the two designs compared differ, and restricted
+    likelihoods of different mean models are not comparable. None when the sessions are too short
+    for block means (``WALK_MIN_BLOCK_SAMPLES``).
+    """
+    prob = lr.prob
+    m = block_size(prob)
+    if m < WALK_MIN_BLOCK_SAMPLES:
+        return None
+    t, sess, xb, yb = block_means(prob, lr.design(causes), prob.y[:, lr.axis][:, None], m)
+    n = t.size
+    p = xb.shape[1]
+    unit = NoiseModel(null.rate_hz / m, null.lowfreq_white_var / m, [], 0.0)
+
+    def ll(q: float) -> tuple[np.ndarray, np.ndarray]:
+        gls = StateSpaceGLS(with_walk(unit, q), t, sess)
+        g = gls.gram(np.column_stack([xb, yb]))
+        beta = gram_solve(g[:p, :p], g[:p, p:], n)
+        qf = np.maximum(np.diag(g[p:, p:]) - np.einsum("pk,pk->k", g[:p, p:], beta), 1e-300)
+        return -0.5 * (n * np.log(qf) + gls.logdet_v), qf
+
+    l0 = float(ll(0.0)[0][0])
+    d, _, _, _ = _grid_max(ll, walk_grid(prob, null))
+    return l0 + 0.5 * float(d[0])
+
+
+def test_against_walk(lr: AxisLR, chosen: list[str], causes: tuple[str, ...]) -> tuple[float, float] | None:
+    """(D, p-value with the look-elsewhere factors) for adding the covariate ``causes`` to ``chosen``
+    with the random walk's intensity (and the white level) re-estimated under BOTH hypotheses.
+
+    Why (outside check H1, 2026-11-27): ``AxisLR.test`` holds the slow states of the error model fitted
+    to a residual that still holds the effect, so a temperature effect on a white log is partly
+    taken as wander: temperature p = 0.0079 there, then the walk, tested on what the covariates
+    left, took the same signal (p = 9e-24) and random_walk was named for a temperature effect. Here
+    the walk can only keep what the covariates, fitted with it, leave: on that log D = 30 (p = 2.5e-7)
+    and the walk given temperature has D = 0. On 360 axes of flicker and "all three" nulls (seeds
+    32000-32059) the smallest p of a single covariate was 8.4e-4 (above ``ALPHA``), because the
+    walk, re-estimated, takes what wanders. D is chi-square with the causes' column count (ML
+    likelihood ratio of nested mean models, the variance parameters profiled under both). None
+    when the sessions are too short for block means. Cached on ``lr``.
+    """
+    key = (("walk-profiled", *chosen), "+".join(causes))
+    if key in lr.tests:
+        return lr.tests[key]
+    null = fast_part(lr.point_model_for(chosen))
+    l0 = _walk_profiled_ml(lr, null, chosen)
+    l1 = _walk_profiled_ml(lr, null, [*chosen, *causes])
+    if l0 is None or l1 is None:
+        return None
+    d = max(2.0 * (l1 - l0), 0.0)
+    k = max(sum(int(lr.cols[c].shape[1]) for c in causes), 1)
+    look = float(np.prod([lr.look_elsewhere.get(c, 1.0) for c in causes]))
+    lr.tests[key] = (float(d), float(min(1.0, look * stats.chi2.sf(d, k))))
+    return lr.tests[key]
