@@ -232,7 +232,11 @@ def _findings(prob: Problem, per_axis: list[AxisResult], by_name: dict[str, Cand
                                            for a, r in zip(AXES, per_axis, strict=True)
                                            if a in axes and r.walk is not None}
         evidence = _evidence(cause, axes, frac, params, hits[0][1].blocks)
-        alike = {} if cause == "random_walk" else look_alikes(cause, axes, per_axis)
+        if cause == "random_walk":  # covariates that explain the wander as well (causes._walk_look_alikes)
+            alike = {a: r.walk_alikes for a, r in zip(AXES, per_axis, strict=True)
+                     if a in axes and r.walk_alikes}
+        else:
+            alike = look_alikes(cause, axes, per_axis)
         if alike:
             params["confounded_with"] = {a: [c for c, _ in v] for a, v in alike.items()}
             evidence += " " + _confounded_text(cause, alike)
