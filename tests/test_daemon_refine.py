@@ -326,6 +326,9 @@ def test_no_drift_alarm_beyond_the_held_set_s_range_where_a_refinement_is_due(tm
         def rms_with(self, coeffs: object, trim: float = 0.0) -> np.ndarray:
             return np.array([0.01, 0.001, 0.001])  # deg/s: x 3.6x its validated residual
 
+        def since(self, t_s: float) -> Monitor:  # the alarm line's newest rests: the same figures
+            return self
+
     s.validated_rms = np.full(3, 0.001)
     monkeypatch.setattr(s, "monitor", Monitor())
     monkeypatch.setattr(s, "_held_info", lambda: (np.full(3, 0.001), (20.0, 35.0), None))
