@@ -1576,6 +1576,8 @@ class Session(RecoveryMixin):
 
     RELEARN_MIN_S = 30.0
     """Unit time [s] between two restarts of learning on a drift alarm (``_relearn_after_alarm``)."""
+    RELEARN_NEWER_S = 10.0
+    """The same once the unit holds a newer set than at the last restart (its bias stage was pushed)."""
 
     def _relearn_after_alarm(self) -> None:
         """A drift alarm: the unit's drift has moved since its set was validated (a shock, a step of its
@@ -1584,15 +1586,16 @@ class Session(RecoveryMixin):
         was left 46 deg/h off with the alarm off and status predicting 0.3 (an outside re-check). So
         learning starts again from the set the unit holds, as at a warm switch-on: its bias stage on the
         samples from here, then a full set when they support one. Not for a constant alone (off at other
-        poses by design: docs/operations.md), and once per RELEARN_MIN_S unless the unit holds a newer
-        set since the last restart: a second step 12 s after the first, once the first's bias stage
-        was pushed, waited out the 30 s while a full set learnt over it was pushed, leaving x 30, then
-        15 and 7.5 deg/h off with the alarm off."""
+        poses by design: docs/operations.md), and once per RELEARN_MIN_S, or RELEARN_NEWER_S once the
+        unit holds a newer set than at the last restart: a second step 12 s after the first, once the
+        first's bias stage was pushed, waited out the 30 s while a full set learnt over it was pushed,
+        leaving x 30, then 15 and 7.5 deg/h off with the alarm off. The floor bounds the pushes a run
+        of false alarms could cause."""
         held = self._applied_coeffs()
         if held is None or _constant_only(self.names, held) or self.applied is None:
             return
-        if self._t_last - self._relearned_at < self.RELEARN_MIN_S \
-                and self.applied.version == self._relearned_from:
+        wait = self.RELEARN_MIN_S if self.applied.version == self._relearned_from else self.RELEARN_NEWER_S
+        if self._t_last - self._relearned_at < wait:
             return
         learner = Learner(self.cfg, self._held_prior(self.applied.version, held, True)[0], self.rate_hz)
         if learner.prior is None:
