@@ -240,6 +240,7 @@ class Session(RecoveryMixin):
         self._pending: tuple[list[str], np.ndarray] = ([], np.zeros((3, 0)))
         self._switch: tuple[AppliedSet, int | None] | None = None  # acked set, seq before the ack
         self.validated_rms: np.ndarray | None = None
+        self._watch_rms: np.ndarray | None = None  # the alarm reference before a push (_watch_held)
         self.last_validation: dict[str, Any] = {}
         self.last_push: dict[str, Any] = {}
         self.alarm = False
@@ -983,7 +984,8 @@ class Session(RecoveryMixin):
                 else:
                     self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED, State.MONITORING):
-            if self.validated_rms is not None:
+            self._watch_held()
+            if self.validated_rms is not None or self._watch_rms is not None:
                 # a set of this session is held: its drift is watched whatever learning is doing. In
                 # COLLECTING (a bias stage refused after an alarm) a second step of the bias went
                 # unwatched, and the sets that followed averaged it in: x 30, 15, then 7.5 deg/h off
@@ -1536,13 +1538,31 @@ class Session(RecoveryMixin):
     0.06 deg between rests in 1.1 s raised alarms of 28-87 deg/h where the unit left under 4 (a fleet
     engineer's road drives; 44-80 deg/h in process)."""
 
+    WATCH_BLOCKS = 8
+    """Still blocks of a warm switch-on after which the held set is watched, before any push."""
+
+    def _watch_held(self) -> None:
+        """A warm switch-on whose held set needs no push (its bias has not moved) had no alarm at all: a
+        100 deg/h step of the bias went unseen and the sets that followed averaged it in, x 61, 30, then
+        15 deg/h off with the alarm off (an outside re-check: 51-55 deg/h on a road drive). Once
+        WATCH_BLOCKS blocks are in, the held set's residual over them is the alarm's reference until a
+        set of this session is validated (the alarm floor below it; this switch-on's bias move, if any,
+        is in it, and its bias stage pushes soon)."""
+        if self.validated_rms is not None or self._watch_rms is not None or not self.learner.has_prior \
+                or len(self.monitor) < self.WATCH_BLOCKS:
+            return
+        held = self._applied_coeffs()
+        if held is None or _constant_only(self.names, held):
+            return
+        self._watch_rms = self.monitor.rms_with(held, self.ALARM_TRIM)
+
     def _check_alarm(self) -> None:
-        if self.validated_rms is None or len(self.monitor) < 4:
+        ref = self.validated_rms if self.validated_rms is not None else self._watch_rms
+        if ref is None or len(self.monitor) < 4:
             return
         applied = self._applied_coeffs()
         rms = self.monitor.rms_with(applied, self.ALARM_TRIM)  # None: the unit's output as sent
-        limit = np.maximum(self.validated_rms * self.cfg.monitor["alarm_ratio"],
-                           self.cfg.monitor["alarm_floor_dps"])
+        limit = np.maximum(ref * self.cfg.monitor["alarm_ratio"], self.cfg.monitor["alarm_floor_dps"])
         alarm = bool(np.any(rms > limit))
         rng, temp = self._held_info()[1], self._context.get("temp")
         if alarm and rng is not None and temp is not None and not rng[0] - 1.0 <= temp <= rng[1] + 1.0:
