@@ -34,7 +34,9 @@ SETS = {"temperature": (0.003, 0.0, 0.0), "pair": (0.003, 0.15, 2.0)}
 
 
 def white_log(seed: int, temp_dps_per_c: float, rate_dps_per_cps: float, cycle_c: float) -> dict:
-    """Log columns with white noise (0.05 deg/s) and the effects on x (see the module docstring)."""
+    """Log columns: white gyro noise 0.05 deg/s, a temperature effect on x [deg/s per degC] and a
+    temperature-rate effect on x [deg/s per degC/s]; the temperature warms 8 degC (tau 120 s) after
+    each switch-on plus a cycle of ``cycle_c`` [degC] over 240 s (the module docstring)."""
     effects = Effects(temp_dps_per_c=np.array([temp_dps_per_c, 0.0, 0.0]),
                       temp_rate_dps_per_cps=np.array([rate_dps_per_cps, 0.0, 0.0]))
     model = TruthModel(noise_dps=0.05, thermal=Thermal(cycle_c=cycle_c, cycle_period_s=240.0),

@@ -12,27 +12,15 @@ many-log figures are in docs/analysis.md ("Covariates weighed against the walk")
 
 from __future__ import annotations
 
-import numpy as np
+import sys
+from pathlib import Path
 
 from gyrocal.analysis.candidates import COVARIATE_CAUSES
 from gyrocal.analysis.engine import analyze
 from gyrocal.logformat import LogData
-from gyrocal.sim.schedule import tumble
-from gyrocal.sim.truth import Effects, SessionStream, Thermal, TruthModel
 
-
-def _white_log(seed: int, temp_dps_per_c: float, rate_dps_per_cps: float, cycle_c: float) -> dict:
-    """Log columns: white gyro noise 0.05 deg/s, a temperature effect on x [deg/s per degC] and a
-    temperature-rate effect on x [deg/s per degC/s]; the temperature warms 8 degC (tau 120 s) after
-    each switch-on plus a cycle of ``cycle_c`` [degC] over 240 s."""
-    effects = Effects(temp_dps_per_c=np.array([temp_dps_per_c, 0.0, 0.0]),
-                      temp_rate_dps_per_cps=np.array([rate_dps_per_cps, 0.0, 0.0]))
-    model = TruthModel(noise_dps=0.05, thermal=Thermal(cycle_c=cycle_c, cycle_period_s=240.0),
-                       effects=effects)
-    parts = [SessionStream(model, tumble(), 25.0, seed, boot, t0_s=boot * 240.0).chunk(180 * 25)
-             for boot in range(3)]
-    keep = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")
-    return {k: np.concatenate([p[k] for p in parts]) for k in keep}
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_covariate_walk import white_log  # noqa: E402  (the benchmark's logs, one seed each here)
 
 
 def _findings(cols: dict) -> dict[str, dict]:
@@ -41,7 +29,7 @@ def _findings(cols: dict) -> dict[str, dict]:
 
 def test_a_temperature_effect_on_white_noise_is_named_a_covariate_not_random_walk() -> None:
     # before: random_walk x (LR p = 7e-11) and no covariate; temperature alone 26 % held out
-    found = _findings(_white_log(102, 0.003, 0.0, 0.0))
+    found = _findings(white_log(102, 0.003, 0.0, 0.0))
     assert "random_walk" not in found, found.keys()
     named = [c for c in COVARIATE_CAUSES if c in found]
     assert len(named) == 1 and found[named[0]]["axes"] == ["x"], found.keys()
@@ -52,7 +40,7 @@ def test_a_temperature_effect_on_white_noise_is_named_a_covariate_not_random_wal
 
 def test_a_temperature_and_rate_pair_is_named_as_the_pair_not_random_walk() -> None:
     # with a 2 degC cycle the two covariates separate; before: random_walk x alone
-    found = _findings(_white_log(102, 0.003, 0.15, 2.0))
+    found = _findings(white_log(102, 0.003, 0.15, 2.0))
     assert "random_walk" not in found, found.keys()
     assert set(found) == {"temperature", "temperature_rate"}, found.keys()
     assert found["temperature"]["axes"] == ["x"] and found["temperature_rate"]["axes"] == ["x"]
@@ -62,7 +50,7 @@ def test_a_walk_named_where_a_covariate_explains_the_wander_says_so() -> None:
     # seed 107 is the pair set's borderline log: temperature_rate passes against the walk at
     # p = 5.7e-4, just above 0.01/18, and given it the walk is no longer significant; before, the
     # walk was named alone. Whichever side of the line the covariate falls, never random_walk alone.
-    found = _findings(_white_log(107, 0.003, 0.15, 2.0))
+    found = _findings(white_log(107, 0.003, 0.15, 2.0))
     covariates_on_x = [c for c in COVARIATE_CAUSES if c in found and "x" in found[c]["axes"]]
     if "random_walk" in found and not covariates_on_x:
         alike = found["random_walk"]["params"].get("confounded_with", {}).get("x", [])

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gyrocal.daemon.session import State
+from gyrocal.daemon.session import Session, State
 from gyrocal.sim.unit import Faults
 from tests.daemon_harness import Harness
 
@@ -1176,12 +1176,9 @@ def test_a_unit_holding_another_term_list_says_why_it_waits_for_a_full_set(tmp_p
     assert "rank 1 < 9" in s.reason and "of other terms (0x549E)" in s.reason, s.reason
 
 
-def test_a_bias_step_mid_switch_on_is_taken_out_by_a_new_bias_stage(tmp_path: Path) -> None:
-    """A unit whose x bias steps by 100 deg/h after its set was pushed (a shock). The alarm fired, and
-    the next set, learnt on every sample since switch-on, averaged the old bias with the new: the unit
-    was left 33-46 deg/h off with the alarm off and status predicting 0.3 (an outside re-check: 56 of
-    100 deg/h taken out; 65 then 33 deg/h left in process). Learning starts again from the held set
-    at the alarm, and its bias stage takes the step out."""
+def _warm_at_rest(tmp_path: Path) -> tuple[Harness, Session]:
+    """A unit calibrated on its tumble, switched on again at rest (z up) and monitored 20 s after:
+    the start of the bias-step tests."""
     from gyrocal.sim.schedule import still
 
     h = Harness.make(tmp_path)
@@ -1192,6 +1189,16 @@ def test_a_bias_step_mid_switch_on_is_taken_out_by_a_new_bias_stage(tmp_path: Pa
     h.run(20)
     s = h.session
     assert s is not None and s.last_push.get("status") == "acked" and not s.alarm
+    return h, s
+
+
+def test_a_bias_step_mid_switch_on_is_taken_out_by_a_new_bias_stage(tmp_path: Path) -> None:
+    """A unit whose x bias steps by 100 deg/h after its set was pushed (a shock). The alarm fired, and
+    the next set, learnt on every sample since switch-on, averaged the old bias with the new: the unit
+    was left 33-46 deg/h off with the alarm off and status predicting 0.3 (an outside re-check: 56 of
+    100 deg/h taken out; 65 then 33 deg/h left in process). Learning starts again from the held set
+    at the alarm, and its bias stage takes the step out."""
+    h, s = _warm_at_rest(tmp_path)
     v = s.last_push["version"]
     h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([100.0, 0.0, 0.0]) / 3600.0
     h.run(30)
@@ -1258,16 +1265,7 @@ def test_the_drift_alarm_line_gives_what_the_newest_rests_are_left_with(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A 21.6 deg/h step of the x bias at rest: the alarm's window still held the blocks from before
     the step, and its line said 8.1 deg/h (a fleet engineer's check). It also gives the last 2 s."""
-    from gyrocal.sim.schedule import still
-
-    h = Harness.make(tmp_path)
-    h.switch_on()
-    h.run(90, until=_pushed)
-    h.unit.schedule = still((0.0, 0.0, 1.0))
-    h.switch_on()
-    h.run(20)
-    s = h.session
-    assert s is not None and s.last_push.get("status") == "acked" and not s.alarm
+    h, s = _warm_at_rest(tmp_path)
     h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([21.6, 0.0, 0.0]) / 3600.0
     with caplog.at_level(logging.WARNING):
         h.run(15, until=lambda h: bool(h.session and h.session.alarm))
@@ -1282,18 +1280,9 @@ def test_a_second_bias_step_soon_after_the_first_is_taken_out_too(tmp_path: Path
     (started again at the first alarm) was in COLLECTING, where the alarm was not watched, and within
     the 30 s between restarts: the sets that followed were learnt across it, x was left 30, 15, then
     7.5 deg/h off with the alarm off (an outside re-check on a road drive: 54-68 deg/h). The alarm is
-    watched whenever a set of this session is held, and learning starts again at once when the unit
-    holds a newer set than at the last restart."""
-    from gyrocal.sim.schedule import still
-
-    h = Harness.make(tmp_path)
-    h.switch_on()
-    h.run(90, until=_pushed)
-    h.unit.schedule = still((0.0, 0.0, 1.0))
-    h.switch_on()
-    h.run(20)
-    s = h.session
-    assert s is not None and s.last_push.get("status") == "acked" and not s.alarm
+    watched whenever a set of this session is held, and learning may start again 10 s after the last
+    restart (not 30) once the unit holds a newer set than then."""
+    h, s = _warm_at_rest(tmp_path)
     h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([100.0, 0.0, 0.0]) / 3600.0
     h.run(12)
     assert h.unit.status()["drift_rms_compensated_dps"]["x"] * 3600 < 2.0
