@@ -98,6 +98,13 @@ class BlockAccumulator:
         self._reset(self._phi.shape[0])
 
 
+def _kept(score: np.ndarray, trim: float) -> np.ndarray:
+    """Indices of the blocks kept when the share ``trim`` with the largest ``score`` (B,) is left out,
+    from 4 blocks on (all of them below)."""
+    drop = int(trim * len(score)) if len(score) >= 4 else 0
+    return np.argsort(score, kind="stable")[:len(score) - drop] if drop else np.arange(len(score))
+
+
 class BlockWindow:
     """The newest blocks, bounded in number (O(1) memory however long the daemon runs)."""
 
@@ -139,9 +146,7 @@ class BlockWindow:
         if not self.blocks:
             return np.full(3, np.nan)
         r = self.residuals(coeffs_dps)
-        drop = int(trim * len(r)) if len(r) >= 4 else 0
-        if drop:
-            r = r[np.argsort(np.linalg.norm(r, axis=1), kind="stable")[:len(r) - drop]]
+        r = r[_kept(np.linalg.norm(r, axis=1), trim)]
         return np.sqrt(np.mean(r**2, axis=0))
 
     def paired_rms(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray | None,
@@ -158,11 +163,8 @@ class BlockWindow:
         if not self.blocks:
             return np.full(3, np.nan), np.full(3, np.nan)
         old, new = self.residuals(old_coeffs_dps), self.residuals(new_coeffs_dps)
-        drop = int(trim * len(old)) if len(old) >= 4 else 0
-        if drop:
-            score = np.minimum(np.linalg.norm(old, axis=1), np.linalg.norm(new, axis=1))
-            kept = np.argsort(score, kind="stable")[:len(old) - drop]
-            old, new = old[kept], new[kept]
+        kept = _kept(np.minimum(np.linalg.norm(old, axis=1), np.linalg.norm(new, axis=1)), trim)
+        old, new = old[kept], new[kept]
         return np.sqrt(np.mean(old**2, axis=0)), np.sqrt(np.mean(new**2, axis=0))
 
     def paired_gain_z(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray) -> float:
