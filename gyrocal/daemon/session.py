@@ -78,6 +78,7 @@ from gyrocal.daemon.poses import PoseLog
 from gyrocal.daemon.push import PushPhase, PushTransaction, check_report, check_set
 from gyrocal.daemon.reconcile import record_crc
 from gyrocal.daemon.session_recovery import RecoveryMixin
+from gyrocal.daemon.stepcheck import find_step
 from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
 from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
@@ -277,6 +278,7 @@ class Session(RecoveryMixin):
         self._relearned_at = float("-inf")  # unit time [s] learning last started again on an alarm
         self._relearned_from: int | None = None  # the version the unit held then
         self._relearning = False  # ... and its bias stage is due (_relearn_after_alarm)
+        self.bias_steps = 0  # bias steps found in the data being learnt from (_step_found)
         self._held_said: list[str] = []  # the terms held at 0 that the log has named (HOLD_STALL_S)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
@@ -579,6 +581,8 @@ class Session(RecoveryMixin):
             self.learner.update_many(phi[train], raw[train], samples["t"][train])
         self.holdout.add([b for b in blocks if b.holdout])
         self.monitor.add(blocks)
+        self.learnt.add(blocks)
+        self._learnt_n += len(blocks)
         self._note_poses(blocks, cols)
 
     def _track_steady(self, t_s: np.ndarray, temp_c: np.ndarray) -> None:
@@ -984,6 +988,8 @@ class Session(RecoveryMixin):
                 else:
                     self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED, State.MONITORING):
+            if self.validated_rms is None and self._watch_rms is None and self._step_found():
+                return  # nothing else watches this data: learning starts again after the step
             self._watch_held()
             if self.validated_rms is not None or self._watch_rms is not None:
                 # a set of this session is held: its drift is watched whatever learning is doing. In
@@ -1035,6 +1041,8 @@ class Session(RecoveryMixin):
         block = int(round(self.cfg.validation["block_s"] * self.rate_hz))
         self.acc = BlockAccumulator(block, self.cfg.validation["holdout_every"], len(self.names))
         self.holdout = BlockWindow(512)
+        self.learnt = BlockWindow(self.STEP_WINDOW_BLOCKS)  # every still block learning has seen
+        self._learnt_n = self._step_checked = 0  # blocks added to it, and that count at the last check
 
     def _refused_terms(self) -> str | None:
         """Why the unit will not take this session's term set (a NAK UNKNOWN_TERMS), or None."""
@@ -1132,6 +1140,8 @@ class Session(RecoveryMixin):
 
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
+        if stage == "full" and self._step_found(every_block=True):
+            return  # a set learnt across the step would take its average, and its residual as the alarm's
         self._validated_at = self.learner.samples
         self._rank_validated = self.learner.rank
         # what the unit can hold (capabilities.py): validated, recorded and pushed; the rest is reported
@@ -1604,6 +1614,48 @@ class Session(RecoveryMixin):
     """Unit time [s] between two restarts of learning on a drift alarm (``_relearn_after_alarm``)."""
     RELEARN_NEWER_S = 10.0
     """The same once the unit holds a newer set than at the last restart (its bias stage was pushed)."""
+
+    STEP_WINDOW_BLOCKS = 1024
+    """Still blocks of the data being learnt from that the bias step check looks at (8.5 min at 0.5 s)."""
+    STEP_RESTARTS_MAX = 3
+    """Bias steps per switch-on that start learning again: a walking bias (a continuum of small steps)
+    that passed the check's tests could otherwise keep a first set from ever being pushed."""
+
+    def _step_found(self, every_block: bool = False) -> bool:
+        """A step of the bias in the data the estimator is learning from (stepcheck.py): learning
+        starts again after it, from the set the unit holds (as after a drift alarm) or, with none, from
+        nothing; True if so. Checked as each 2 blocks come while no set of this session is held
+        (nothing else watches the drift then), and before every full validation (``every_block``):
+        a set learnt across the step takes the average of the two biases, and its held-out residual,
+        which holds the step, would become the drift alarm's reference."""
+        if self.bias_steps >= self.STEP_RESTARTS_MAX:
+            return False
+        if not every_block and self._learnt_n < self._step_checked + 2:
+            return False
+        self._step_checked = self._learnt_n
+        step = find_step(list(self.learnt.blocks), floor_dps=float(self.cfg.monitor["alarm_floor_dps"]))
+        if step is None:
+            return False
+        self.bias_steps += 1
+        held = self._applied_coeffs()
+        restart = "from nothing"
+        if self.applied is not None and held is not None and self.learner.has_prior:
+            prior = self._held_prior(self.applied.version, held, True)[0]
+            learner = Learner(self.cfg, prior, self.rate_hz)
+            if learner.prior is not None:
+                restart = f"from v{self.applied.version}, the set it holds"
+                self._learn_again(learner)
+                self._bias_pushed, self._bias_partial, self._relearning = False, False, True
+                self._relearned_at, self._relearned_from = self._t_last, self.applied.version
+        if restart == "from nothing":
+            self._learn_again(self.learner.fresh())
+        self.reason = (f"the {'xyz'[step.axis]} bias stepped by {step.dps * DPH:+.3g} deg/h at about unit "
+                       f"time {step.t_s:.1f} s: learning starts again {restart}")
+        log.warning("unit %s: %s (%.0f standard errors, %d still blocks after it; step %d of at most %d "
+                    "this switch-on)", self.hello.serial, self.reason, step.z, step.after, self.bias_steps,
+                    self.STEP_RESTARTS_MAX)
+        self.state = State.COLLECTING
+        return True
 
     def _relearn_after_alarm(self) -> None:
         """A drift alarm: the unit's drift has moved since its set was validated (a shock, a step of its

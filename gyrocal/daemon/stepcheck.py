@@ -1,0 +1,120 @@
+"""A step of the bias within the blocks a set is being learnt from, found before it is averaged in.
+
+Why: the estimator weighs every sample since learning started alike. A unit whose x bias stepped by
+60 deg/h 20 s into its first tumble (a shock) was left uncalibrated for 250 s ("converged, but
+predicted drift left 14.2 deg/h", falling as the new bias outweighed the old), then given a set
+that averaged the two biases: 5.3 deg/h left where an undisturbed switch-on leaves 0.3, the alarm
+off, since that set's own validation residual held the step (in process; an outside re-check saw
+the same on a road drive after a relearn: 68 deg/h left with `alarm: false`). The drift alarm
+watches a set once one is held; nothing watched the data a set is learnt from.
+
+The test is the generalised likelihood ratio for a jump of one axis's bias in the linear model the
+estimator fits, over the still blocks' means (blocks.py: the model is linear in its terms, so a
+block's means are all the fit needs): for each block boundary c, the step column s_c = 1[i >= c]
+after projecting out the model's terms. With the blocks weighted by their samples n_i, the fit's
+residual r (weighted) and Q an orthonormal basis of the weighted terms, the step estimate at c is
+
+    delta_c = sum_{i>=c} w_i r_i / (sum_{i>=c} n_i - |sum_{i>=c} w_i Q_i|^2),   w_i = sqrt(n_i),
+
+all reverse cumulative sums: O(blocks x terms) for every boundary at once.
+
+A step is believed only when it is far beyond chance and beyond the blocks' own scatter:
+- its z (the estimate over its standard error, the error from the blocks' scatter left once the step
+  is fitted, so misfit and wander count as noise) is at least ``z_min``;
+- it is larger than ``floor_dps`` (the drift alarm's floor) and ``scatter_ratio`` times the RMS of
+  the block residuals left once it is fitted (the quarter largest left out: a slow turn taken for
+  rest), so a wandering bias (an MEMS unit's flicker: a continuum of small steps) is not cut into
+  restarts that would keep its first set from ever being pushed;
+- ``min_before`` blocks lie before it and ``min_after`` after it (a step 2 s into a cold tumble, with
+  its few blocks before, was averaged into the first set: 6.8 deg/h left).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gyrocal.daemon.blocks import Block, _kept
+
+
+@dataclass(frozen=True)
+class Step:
+    """A step found: on ``axis`` (0..2), before the block closed at unit time ``t_s`` [s], of
+    ``dps`` [deg/s] (the new bias minus the old), ``z`` standard errors, ``after`` blocks after it."""
+
+    axis: int
+    t_s: float
+    dps: float
+    z: float
+    after: int
+
+
+def _steps(x: np.ndarray, y: np.ndarray, n: np.ndarray, min_before: int,
+           min_after: int) -> list[tuple[int, float, float]]:
+    """Per axis, the best step of the weighted model ``x`` (B, P), ``y`` (B, 3) with block samples
+    ``n`` (B,): (first block after it, its size [deg/s], its z); z 0 where no boundary is testable."""
+    nb = len(n)
+    w = np.sqrt(n)
+    u, sv, _ = np.linalg.svd(x, full_matrices=False)
+    rank = int(np.sum(sv > sv[0] * 1e-9)) if sv.size and sv[0] > 0 else 0
+    q = u[:, :rank]
+    r = y - q @ (q.T @ y)
+    ssr = np.sum(r**2, axis=0)
+    dof = nb - rank - 1
+
+    def tail(a: np.ndarray) -> np.ndarray:  # sums over i >= c, for every c
+        return np.cumsum(a[::-1], axis=0)[::-1]
+
+    cand = np.arange(min_before, nb - min_after + 1)
+    den = (tail(n) - np.sum(tail(q * w[:, None]) ** 2, axis=1))[cand]
+    num = tail(r * w[:, None])[cand]
+    ok = den > 1e-9 * n.sum()
+    out = []
+    for axis in range(3):
+        if dof < 2 or not ok.any():
+            out.append((0, 0.0, 0.0))
+            continue
+        gain = np.where(ok, num[:, axis] ** 2 / np.where(ok, den, 1.0), -1.0)  # the fall of the SSR
+        i = int(np.argmax(gain))
+        delta = float(num[i, axis] / den[i])
+        sigma2 = (float(ssr[axis]) - float(gain[i])) / dof
+        z = abs(delta) / np.sqrt(sigma2 / float(den[i])) if sigma2 > 0 else 0.0
+        out.append((int(cand[i]), delta, float(z)))
+    return out
+
+
+def find_step(blocks: list[Block], min_before: int = 4, min_after: int = 8, z_min: float = 8.0,
+              floor_dps: float = 0.002,
+              scatter_ratio: float = 4.0, alone_ratio: float = 3.0) -> Step | None:
+    """The largest believable step of one axis's bias among ``blocks`` (oldest first), or None.
+
+    ``alone_ratio``: the step's z must be this many times that of the best second step on its axis
+    once it is fitted. A lone step leaves flat residuals on both sides; a walking bias leaves more
+    steps of the same order wherever the first is put (restarts on every one of them would keep a
+    walking unit's first set from ever being pushed)."""
+    nb = len(blocks)
+    if nb < min_before + min_after:
+        return None
+    n = np.array([b.n for b in blocks], dtype=float)
+    w = np.sqrt(n)
+    x = np.array([b.phi for b in blocks]) * w[:, None]
+    y = np.array([b.raw_dps for b in blocks]) * w[:, None]
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        return None
+    best: Step | None = None
+    for axis, (c, delta, z) in enumerate(_steps(x, y, n, min_before, min_after)):
+        if z < z_min or (best is not None and z <= best.z):
+            continue
+        s = np.where(np.arange(nb) >= c, w, 0.0)
+        design = np.column_stack([x, s])
+        coef, *_ = np.linalg.lstsq(design, y[:, axis], rcond=None)
+        e = (y[:, axis] - design @ coef) / w  # the block residuals once the step is fitted [deg/s]
+        scatter = float(np.sqrt(np.mean(e[_kept(np.abs(e), 0.25)] ** 2)))
+        if abs(delta) < max(floor_dps, scatter_ratio * scatter):
+            continue
+        second = _steps(design, y, n, min_before, min_after)[axis][2]
+        if z < alone_ratio * second:
+            continue
+        best = Step(axis, float(blocks[c].t_s), delta, float(z), nb - c)
+    return best
