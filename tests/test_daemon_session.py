@@ -1335,7 +1335,8 @@ def test_a_bias_step_in_a_cold_tumble_starts_learning_again_after_it(tmp_path: P
     h.run(120, until=_pushed)
     s = h.session
     assert s.last_push.get("status") == "acked", s.reason
-    assert s.bias_steps == 1
+    assert [b["axis"] for b in s.bias_steps] == ["x"] and 45 < s.bias_steps[0]["dph"] < 80, s.bias_steps
+    assert h.store.get(4242, s.last_push["version"]).stats["bias_steps"] == s.bias_steps
     lines = [r.getMessage() for r in caplog.records if "bias stepped by" in r.getMessage()]
     assert len(lines) == 1 and "the x bias stepped by +" in lines[0], lines
     h.run(5)

@@ -278,7 +278,8 @@ class Session(RecoveryMixin):
         self._relearned_at = float("-inf")  # unit time [s] learning last started again on an alarm
         self._relearned_from: int | None = None  # the version the unit held then
         self._relearning = False  # ... and its bias stage is due (_relearn_after_alarm)
-        self.bias_steps = 0  # bias steps found in the data being learnt from (_step_found)
+        # bias steps found in the data being learnt from (_step_found): status and each record say them
+        self.bias_steps: list[dict[str, Any]] = []
         self._held_said: list[str] = []  # the terms held at 0 that the log has named (HOLD_STALL_S)
         self._t_last = float("nan")  # the newest sample's time stamp [s], the unit's clock
         self.unit_clock_s = float("nan")  # the newest time stamp heard [s], decided or not (heard)
@@ -1351,6 +1352,7 @@ class Session(RecoveryMixin):
                    "trained_samples": self.learner.samples, "validation": self.last_validation,
                    "predicted_drift_dph": self._push_prediction,
                    "warm_started_from": self.warm_started_from, "resumed_from": self.resumed_from,
+                   "bias_steps": self.bias_steps,  # found this switch-on: the set is learnt after them
                    # the range the set's temperature terms were learnt over (this and earlier
                    # switch-ons' merged; a bias stage keeps the held set's terms, so its range), and
                    # the information on those terms for the next switch-on with the range it spans
@@ -1628,7 +1630,7 @@ class Session(RecoveryMixin):
         (nothing else watches the drift then), and before every full validation (``every_block``):
         a set learnt across the step takes the average of the two biases, and its held-out residual,
         which holds the step, would become the drift alarm's reference."""
-        if self.bias_steps >= self.STEP_RESTARTS_MAX:
+        if len(self.bias_steps) >= self.STEP_RESTARTS_MAX:
             return False
         if not every_block and self._learnt_n < self._step_checked + 2:
             return False
@@ -1636,7 +1638,8 @@ class Session(RecoveryMixin):
         step = find_step(list(self.learnt.blocks), floor_dps=float(self.cfg.monitor["alarm_floor_dps"]))
         if step is None:
             return False
-        self.bias_steps += 1
+        self.bias_steps.append({"axis": "xyz"[step.axis], "dph": round(step.dps * DPH, 2),
+                                "unit_time_s": round(step.t_s, 2), "z": round(step.z, 1)})
         held = self._applied_coeffs()
         restart = "from nothing"
         if self.applied is not None and held is not None and self.learner.has_prior:
@@ -1652,8 +1655,8 @@ class Session(RecoveryMixin):
         self.reason = (f"the {'xyz'[step.axis]} bias stepped by {step.dps * DPH:+.3g} deg/h at about unit "
                        f"time {step.t_s:.1f} s: learning starts again {restart}")
         log.warning("unit %s: %s (%.0f standard errors, %d still blocks after it; step %d of at most %d "
-                    "this switch-on)", self.hello.serial, self.reason, step.z, step.after, self.bias_steps,
-                    self.STEP_RESTARTS_MAX)
+                    "this switch-on)", self.hello.serial, self.reason, step.z, step.after,
+                    len(self.bias_steps), self.STEP_RESTARTS_MAX)
         self.state = State.COLLECTING
         return True
 
@@ -1720,6 +1723,7 @@ class Session(RecoveryMixin):
                 self.monitor.rms_with(self._applied_coeffs(), self.ALARM_TRIM))[0], strict=True)),
             "alarm": self.alarm,
             "alarm_beyond_range": self.alarm_beyond_range,
+            "bias_steps": self.bias_steps,
             "last_push": self.last_push,
             "warm_started_from": self.warm_started_from,
             "resumed_from": self.resumed_from,
