@@ -29,7 +29,6 @@ state is UNIT_SILENT (one log line on the transition, one on recovery, and in sy
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import queue
@@ -44,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from gyrocal import pidlock
 from gyrocal.daemon.capabilities import frame_changed, of_link
 from gyrocal.daemon.commands import CommandsMixin
 from gyrocal.daemon.config import DaemonConfig
@@ -215,26 +215,17 @@ class Engine(CommandsMixin):
         path = self.cfg.state_dir / "daemon.lock"
         try:
             self.cfg.state_dir.mkdir(parents=True, exist_ok=True)
-            fh = path.open("a+", encoding="utf-8")
+            fh, holder = pidlock.take(path)
         except OSError as err:
             log.warning("state directory %s: no lock file (%s): a second daemon on this store would not "
                         "be refused", self.cfg.state_dir, err.strerror or err)
             return
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.seek(0)
-            holder = fh.read().strip() or "a process"
-            fh.close()
+        if fh is None:
             raise GyrocalError(f"another gyrocal daemon ({holder}) uses the state directory "
                                f"{self.cfg.state_dir}: one daemon per store; stop it first (systemctl stop "
-                               "gyrocal) or give this one its own state_dir (config) or --state-dir"
-                               ) from None
+                               "gyrocal) or give this one its own state_dir (config) or --state-dir")
         try:
-            fh.seek(0)
-            fh.truncate()
-            fh.write(f"pid {os.getpid()}\n")
-            fh.flush()
+            pidlock.write_pid(fh)
         except OSError as err:  # a full disk: the lock holds without the pid (a traceback and exit 1 was
             # a restart loop every 5 s that never calibrated: an operator's audit)
             log.warning("state directory %s: the lock is held but its pid not written (%s)",

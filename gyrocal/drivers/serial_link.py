@@ -11,7 +11,6 @@ data". The base class then closes the port and reopens it with backoff until the
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import re
@@ -20,6 +19,7 @@ from typing import IO, Any
 
 import serial
 
+from gyrocal import pidlock
 from gyrocal.daemon.ring import RingBuffer
 from gyrocal.drivers.base import ControlCallback, EventCallback, Link
 from gyrocal.errors import LinkError
@@ -123,32 +123,25 @@ class SerialLink(Link):
         """An exclusive lock on ``path`` (written with this pid), None where locks cannot be made;
         LinkError when another daemon holds it."""
         try:
-            fh = path.open("a+", encoding="utf-8")
+            fh, holder = pidlock.take(path)
         except OSError as err:
             if not self._claim_said:
                 log.info("serial %s: no port claim in %s (%s): the exclusive open alone guards the port",
                          self.url, path.parent, err.strerror or err)
                 self._claim_said = True
             return None
+        if fh is None:
+            raise LinkError(f"serial port {self.url!r} is claimed by another gyrocal daemon ({holder}; "
+                            f"lock {path}): one daemon per port; stop it, this one takes the port when "
+                            "it is free")
         try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             same = os.fstat(fh.fileno()).st_ino == path.stat().st_ino
-        except OSError as err:
-            fh.seek(0)
-            holder = fh.read().strip() or "a process"
-            fh.close()
-            if not isinstance(err, FileNotFoundError):
-                raise LinkError(f"serial port {self.url!r} is claimed by another gyrocal daemon ({holder}; "
-                                f"lock {path}): one daemon per port; stop it, this one takes the port when "
-                                "it is free") from None
+        except FileNotFoundError:
             same = False
         if not same:  # its holder removed it as we locked it (_unlock): claimed at the next open
             fh.close()
             raise LinkError(f"serial port {self.url!r}: its claim {path} was just released; taken next try")
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"pid {os.getpid()}\n")
-        fh.flush()
+        pidlock.write_pid(fh)
         return fh
 
     @staticmethod
