@@ -22,11 +22,13 @@ A step is believed only when it is far beyond chance and beyond the blocks' own 
 - its z (the estimate over its standard error, the error from the blocks' scatter left once the step
   is fitted, so misfit and wander count as noise) is at least ``z_min``;
 - it is larger than ``floor_dps`` (the drift alarm's floor) and ``scatter_ratio`` times the RMS of
-  the block residuals left once it is fitted (the quarter largest left out: a slow turn taken for
-  rest), so a wandering bias (an MEMS unit's flicker: a continuum of small steps) is not cut into
-  restarts that would keep its first set from ever being pushed;
-- ``min_before`` blocks lie before it and ``min_after`` after it (a step 2 s into a cold tumble, with
-  its few blocks before, was averaged into the first set: 6.8 deg/h left).
+  the block residuals left once it is fitted, on either side of it (the quarter largest left out
+  where a side has 8 blocks or more: a slow turn taken for rest), so a wandering bias (an MEMS
+  unit's flicker: a continuum of small steps) is not cut into restarts that would keep its first
+  set from ever being pushed;
+- it stands alone on its axis (``alone_ratio``);
+- ``min_before`` blocks lie before it and ``min_after`` after it. A step 4 s into a cold tumble is
+  placed; one in the first 2 s of still data is not, and is still averaged in.
 """
 
 from __future__ import annotations
@@ -50,15 +52,27 @@ class Step:
     after: int
 
 
-def _steps(x: np.ndarray, y: np.ndarray, n: np.ndarray, min_before: int,
+SPAN_MIN = 1e-2
+"""Directions of the terms that the blocks span less than this share of the constant's (a gravity
+term over tilts of under about 0.6 deg) are not fitted: a vehicle settling 0.3 deg let 10 free
+gravity coefficients fit 4 blocks exactly (198 deg/h between tilts 0.005 g apart: 40,000 deg/h per
+g), and its settling was taken for a step."""
+
+
+def _basis(x: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """An orthonormal basis (B, r) of the directions the weighted terms ``x`` (B, P) span (SPAN_MIN)."""
+    u, sv, _ = np.linalg.svd(x, full_matrices=False)
+    return u[:, :int(np.sum(sv > SPAN_MIN * np.sqrt(n.sum())))]
+
+
+def _steps(q: np.ndarray, y: np.ndarray, n: np.ndarray, min_before: int,
            min_after: int) -> list[tuple[int, float, float]]:
-    """Per axis, the best step of the weighted model ``x`` (B, P), ``y`` (B, 3) with block samples
-    ``n`` (B,): (first block after it, its size [deg/s], its z); z 0 where no boundary is testable."""
+    """Per axis, the best step beside the model of orthonormal basis ``q`` (B, r), of the weighted
+    ``y`` (B, 3) with block samples ``n`` (B,): (first block after it, its size [deg/s], its z); z 0
+    where no boundary is testable."""
     nb = len(n)
     w = np.sqrt(n)
-    u, sv, _ = np.linalg.svd(x, full_matrices=False)
-    rank = int(np.sum(sv > sv[0] * 1e-9)) if sv.size and sv[0] > 0 else 0
-    q = u[:, :rank]
+    rank = q.shape[1]
     r = y - q @ (q.T @ y)
     ssr = np.sum(r**2, axis=0)
     dof = nb - rank - 1
@@ -84,7 +98,16 @@ def _steps(x: np.ndarray, y: np.ndarray, n: np.ndarray, min_before: int,
     return out
 
 
-def find_step(blocks: list[Block], min_before: int = 4, min_after: int = 8, z_min: float = 8.0,
+def _side_rms(e: np.ndarray) -> float:
+    """RMS [deg/s] of one side's block residuals ``e``, the quarter largest left out from 8 blocks on:
+    a side of fewer must hold its level in every block. Why per side: 3 of the 4 blocks before a
+    vehicle's settling ended held the slow turn's rate (198 deg/h, too slow for the still rule), and
+    a quarter trimmed over both sides left them all out: the settling was taken for a 189 deg/h step."""
+    kept = _kept(np.abs(e), 0.25) if e.size >= 8 else np.arange(e.size)
+    return float(np.sqrt(np.mean(e[kept] ** 2)))
+
+
+def find_step(blocks: list[Block], min_before: int = 3, min_after: int = 8, z_min: float = 8.0,
               floor_dps: float = 0.002,
               scatter_ratio: float = 4.0, alone_ratio: float = 3.0) -> Step | None:
     """The largest believable step of one axis's bias among ``blocks`` (oldest first), or None.
@@ -102,18 +125,17 @@ def find_step(blocks: list[Block], min_before: int = 4, min_after: int = 8, z_mi
     y = np.array([b.raw_dps for b in blocks]) * w[:, None]
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
         return None
+    q = _basis(x, n)
     best: Step | None = None
-    for axis, (c, delta, z) in enumerate(_steps(x, y, n, min_before, min_after)):
+    for axis, (c, delta, z) in enumerate(_steps(q, y, n, min_before, min_after)):
         if z < z_min or (best is not None and z <= best.z):
             continue
-        s = np.where(np.arange(nb) >= c, w, 0.0)
-        design = np.column_stack([x, s])
-        coef, *_ = np.linalg.lstsq(design, y[:, axis], rcond=None)
-        e = (y[:, axis] - design @ coef) / w  # the block residuals once the step is fitted [deg/s]
-        scatter = float(np.sqrt(np.mean(e[_kept(np.abs(e), 0.25)] ** 2)))
+        q2, _ = np.linalg.qr(np.column_stack([q, np.where(np.arange(nb) >= c, w, 0.0)]))
+        e = (y[:, axis] - q2 @ (q2.T @ y[:, axis])) / w  # the block residuals with the step [deg/s]
+        scatter = max(_side_rms(e[:c]), _side_rms(e[c:]))
         if abs(delta) < max(floor_dps, scatter_ratio * scatter):
             continue
-        second = _steps(design, y, n, min_before, min_after)[axis][2]
+        second = _steps(q2, y, n, min_before, min_after)[axis][2]
         if z < alone_ratio * second:
             continue
         best = Step(axis, float(blocks[c].t_s), delta, float(z), nb - c)
