@@ -989,8 +989,8 @@ class Session(RecoveryMixin):
                 else:
                     self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED, State.MONITORING):
-            if self.validated_rms is None and self._watch_rms is None and self._step_found():
-                return  # nothing else watches this data: learning starts again after the step
+            if self._unwatched() and self._step_found():
+                return  # no alarm can start learning again: it starts again after the step
             self._watch_held()
             if self.validated_rms is not None or self._watch_rms is not None:
                 # a set of this session is held: its drift is watched whatever learning is doing. In
@@ -1141,7 +1141,7 @@ class Session(RecoveryMixin):
 
     def _validate(self, now: float, blocks: BlockWindow | None = None, stage: str = "full") -> None:
         self.state = State.VALIDATING
-        if stage == "full" and self._step_found(every_block=True):
+        if self._step_found(every_block=True):
             return  # a set learnt across the step would take its average, and its residual as the alarm's
         self._validated_at = self.learner.samples
         self._rank_validated = self.learner.rank
@@ -1319,10 +1319,13 @@ class Session(RecoveryMixin):
         self.validated_rms = rms_new
         if stage == "bias":
             # judged in sample on a few blocks: the alarm's reference must hold what other poses and
-            # later blocks will show (block noise, the stored terms' and the new bias's error)
+            # later blocks will show (block noise, the stored terms' and the new bias's error). Its
+            # in-sample residual counts up to BIAS_REF_EXCESS times that: beyond, the blocks held
+            # what no bias explains (a step among them), which is not the set's to keep
             block_var = self.learner.residual_var() / max(self.acc.size, 1)
             left = np.nan_to_num(self.prediction.get("left_sphere", np.zeros(3)), posinf=0.0)
-            self.validated_rms = np.sqrt(rms_new**2 + block_var + left**2)
+            expect = block_var + left**2
+            self.validated_rms = np.sqrt(np.minimum(rms_new**2, self.BIAS_REF_EXCESS**2 * expect) + expect)
         took = time.monotonic() - wrote_from
         if took > self.SLOW_WRITE_S and np.isfinite(heard):
             # the messages of those seconds are still queued behind the samples: the unit may have
@@ -1617,19 +1620,39 @@ class Session(RecoveryMixin):
     RELEARN_NEWER_S = 10.0
     """The same once the unit holds a newer set than at the last restart (its bias stage was pushed)."""
 
+    BIAS_REF_EXCESS = 2.0
+    """A bias stage's in-sample residual counts in the drift alarm's reference up to this many times
+    what the stage is expected to leave (block noise, the terms' and the bias's error). A 100 deg/h step
+    0.5-1.5 s before a warm switch-on's first bias stage, or in the 18 s before a cold unit's constant
+    alone at one pose, was averaged into the set, whose in-sample residual (41-80 deg/h) became the
+    alarm's baseline: the unit was left 21.6-93.5 deg/h off with `alarm: false` for the rest of the
+    switch-on (an outside re-check)."""
+
     STEP_WINDOW_BLOCKS = 1024
     """Still blocks of the data being learnt from that the bias step check looks at (8.5 min at 0.5 s)."""
     STEP_RESTARTS_MAX = 3
     """Bias steps per switch-on that start learning again: a walking bias (a continuum of small steps)
     that passed the check's tests could otherwise keep a first set from ever being pushed."""
 
+    def _unwatched(self) -> bool:
+        """No drift alarm can start learning again: no set of this session is held (nor watched), or
+        the unit holds a constant alone, which an alarm does not relearn (``_relearn_after_alarm``).
+        A cold unit at one pose whose bias stepped 2 s before its constant was pushed raised the alarm,
+        and was left 95 deg/h off with it (in process)."""
+        if self.validated_rms is None and self._watch_rms is None:
+            return True
+        held = self._applied_coeffs()
+        return held is not None and _constant_only(self.names, held)
+
     def _step_found(self, every_block: bool = False) -> bool:
         """A step of the bias in the data the estimator is learning from (stepcheck.py): learning
         starts again after it, from the set the unit holds (as after a drift alarm) or, with none, from
-        nothing; True if so. Checked as each 2 blocks come while no set of this session is held
-        (nothing else watches the drift then), and before every full validation (``every_block``):
-        a set learnt across the step takes the average of the two biases, and its held-out residual,
-        which holds the step, would become the drift alarm's reference."""
+        nothing; True if so. Checked as each 2 blocks come while no alarm can start learning again
+        (``_unwatched``), and before every validation, a bias stage's too
+        (``every_block``): a set learnt across the step takes the average of the two biases, and its
+        residual, which holds the step, would become the drift alarm's reference (an outside re-check:
+        a cold unit at one pose, a 100 deg/h step 17 s before its constant was pushed, left 72.9 deg/h
+        off with the alarm off for 238 s, to the end of its run)."""
         if len(self.bias_steps) >= self.STEP_RESTARTS_MAX:
             return False
         if not every_block and self._learnt_n < self._step_checked + 2:
@@ -1642,7 +1665,10 @@ class Session(RecoveryMixin):
                                 "unit_time_s": round(step.t_s, 2), "z": round(step.z, 1)})
         held = self._applied_coeffs()
         restart = "from nothing"
-        if self.applied is not None and held is not None and self.learner.has_prior:
+        if self.applied is not None and held is not None \
+                and (self.learner.has_prior or self.last_push.get("status") == "acked"):
+            # a warm start's, or a set of this session: a cold unit's constant alone at one pose, whose
+            # own bias stage then takes the step out at once (learning from nothing, it waited 60 s more)
             prior = self._held_prior(self.applied.version, held, True)[0]
             learner = Learner(self.cfg, prior, self.rate_hz)
             if learner.prior is not None:
