@@ -1674,10 +1674,13 @@ class Session(RecoveryMixin):
             if learner.prior is not None:
                 restart = f"from v{self.applied.version}, the set it holds"
                 self._learn_again(learner)
-                self._bias_pushed, self._bias_partial, self._relearning = False, False, True
+                self._relearning = True
                 self._relearned_at, self._relearned_from = self._t_last, self.applied.version
         if restart == "from nothing":
             self._learn_again(self.learner.fresh())
+        # its bias stage (a cold unit's constant alone) is due again: a step found as that stage was
+        # validated would leave it marked done, and the constant would not be learnt again
+        self._bias_pushed, self._bias_partial = False, False
         self.reason = (f"the {'xyz'[step.axis]} bias stepped by {step.dps * DPH:+.3g} deg/h at about unit "
                        f"time {step.t_s:.1f} s: learning starts again {restart}")
         log.warning("unit %s: %s (%.0f standard errors, %d still blocks after it; step %d of at most %d "
