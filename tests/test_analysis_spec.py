@@ -25,14 +25,14 @@ def _terms(b_dps: float, k: float, floor_tau_s: float) -> dict:
 def test_bias_spec_takes_the_joint_fit_on_wandering_axes_and_never_leaves_a_named_walk_empty() -> None:
     findings = [
         {"cause": "random_walk", "axes": ["x", "z"],
-         "params": {"dps_per_sqrt_s": {"x": 7e-4, "z": 0.0}, "lr_dps_per_sqrt_s": {"x": 9e-4, "z": 4e-3}}},
+         "params": {"dps_per_sqrt_s": {"x": 7e-4, "z": 4e-3}, "allan_dps_per_sqrt_s": {"x": 9e-4, "z": 0.0}}},
         {"cause": "bias_instability", "axes": ["x", "y"], "params": {}},
         {"cause": "warmup", "axes": ["y"], "params": {}},
     ]
     allan = {"x": _terms(3e-3, 1e-4, 160.0), "y": _terms(2e-3, 5e-4, 80.0), "z": _terms(0.0, 0.0, 600.0)}
     spec = bias_spec(findings, allan)
-    # the joint fit's K on a walk axis; z has neither K nor B in the fit: the REML intensity
-    # (the finding's own Allan walk is 0 there); y is not a walk axis, so its K is not taken
+    # the joint fit's K on a walk axis; z has neither K nor B in the fit: the finding's walk, the
+    # test's REML intensity (not its Allan fit's walk part, 0 there); y is not a walk axis
     assert spec["random_walk"]["dps_per_sqrt_s"] == {"x": 1e-4, "z": 4e-3}
     bi = spec["bias_instability"]
     assert bi["dps"] == {"x": 3e-3, "y": 2e-3, "z": 0.0}  # the joint fit's B, not the read-off's
@@ -41,7 +41,7 @@ def test_bias_spec_takes_the_joint_fit_on_wandering_axes_and_never_leaves_a_name
     np.testing.assert_allclose(m.random_walk_dps_per_sqrt_s, [1e-4, 0.0, 4e-3])
     np.testing.assert_allclose(m.gm_sigma_dps, FLICKER_FLOOR * np.array([3e-3, 2e-3, 0.0]) / GM_PEAK)
     np.testing.assert_allclose(m.gm_tau_s[:2], np.array([160.0, 80.0]) / GM_PEAK_TAU)
-    # a NaN fit (too few taus) is no fit: the finding's own walk
+    # a NaN fit (too few taus) is no fit: the finding's walk
     allan["x"]["joint_fit"] = {"bias_instability": {"value": float("nan")},
                                "rate_random_walk": {"value": float("nan")}}
     assert bias_spec(findings, allan)["random_walk"]["dps_per_sqrt_s"]["x"] == 7e-4

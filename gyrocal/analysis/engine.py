@@ -150,8 +150,8 @@ def analyze(log: LogData, progress: Callable[[str], None] | None = None, seed: i
         if any(c in chosen[a] for a in AXES):
             ext_terms += [t for t in c.terms if t not in ext_terms]
     rw = next((f for f in findings if f["cause"] == "random_walk"), None)
-    random_walk = {"dps_per_sqrt_s": rw["params"]["dps_per_sqrt_s"],
-                   "flicker_bank": rw["params"]["flicker_bank"]} if rw else None
+    random_walk = {k: rw["params"][k] for k in ("dps_per_sqrt_s", "allan_dps_per_sqrt_s", "flicker_bank")
+                   } if rw else None
 
     sigma_diff = noise_dps(resid_base, usable.run)  # first differences: what the simulation used
     sigma = np.array([models[a].sample_sd for a in AXES])
@@ -226,11 +226,8 @@ def _findings(prob: Problem, per_axis: list[AxisResult], by_name: dict[str, Cand
         p = float(min(s.p_value for _, s in hits))
         params = cause_params(prob, by_name[cause], coefs.get(cause, {}))
         if cause == "random_walk":
-            params.update(walk_params({a: models[a] for a in axes}))
-            # the intensity the walk's likelihood ratio estimated (REML), beside the Allan fit's
-            params["lr_dps_per_sqrt_s"] = {a: float(np.sqrt(r.walk.q_hat))
-                                           for a, r in zip(AXES, per_axis, strict=True)
-                                           if a in axes and r.walk is not None}
+            params.update(walk_params({a: models[a] for a in axes},
+                                      {a: r.walk for a, r in zip(AXES, per_axis, strict=True) if a in axes}))
         evidence = _evidence(cause, axes, frac, params, hits[0][1].blocks)
         if cause == "random_walk":  # covariates that explain the wander as well (causes._walk_look_alikes)
             alike = {a: r.walk_alikes for a, r in zip(AXES, per_axis, strict=True)

@@ -55,8 +55,8 @@ def bias_spec(findings: list[dict], allan_terms: dict) -> dict:
     - ``bias_instability: {dps: B, tau_s: tau_B}``: B [deg/s] from the joint fit, tau_B [s] where
       the measured curve has its minimum (the IEEE read-off's tau); 0 on other axes;
     - ``random_walk.dps_per_sqrt_s`` [deg/s/sqrt(s)], random_walk axes only: the joint fit's K; where
-      the fit gives the axis neither K nor B, the finding's own walk, else the likelihood ratio's
-      REML intensity (``lr_dps_per_sqrt_s``), so a named wander never becomes an empty state.
+      the fit gives the axis neither K nor B, the finding's ``dps_per_sqrt_s`` (the walk test's REML
+      intensity), so a named wander never becomes an empty state.
     """
     by = {f["cause"]: f for f in findings}
     rw = by.get("random_walk")
@@ -75,9 +75,8 @@ def bias_spec(findings: list[dict], allan_terms: dict) -> dict:
         walk = {}
         for a in rw["axes"]:
             walk[a] = fit(a, "rate_random_walk")
-            if walk[a] <= 0 and b_dps[a] <= 0:  # the finding's own walk, else the REML one
-                walk[a] = float(p.get("dps_per_sqrt_s", {}).get(a, 0.0)) \
-                    or float(p.get("lr_dps_per_sqrt_s", {}).get(a, 0.0))
+            if walk[a] <= 0 and b_dps[a] <= 0:  # the finding's walk: the test's (REML) intensity
+                walk[a] = float(p.get("dps_per_sqrt_s", {}).get(a, 0.0))
         out["random_walk"] = {"dps_per_sqrt_s": walk}
     if tau_b:
         mean_tau = float(np.exp(np.mean(np.log(list(tau_b.values())))))
@@ -130,7 +129,9 @@ def effects_from_findings(findings: list[dict], rate_hz: float | None = None) ->
         elif f["cause"] == "scale_factor":
             e.scale_factor = vec(p["scale_factor"])
         elif f["cause"] == "random_walk":
-            e.random_walk_dps_per_sqrt_s = vec(p["dps_per_sqrt_s"])
+            # the Allan fit's walk, which goes with its flicker bank (the finding's dps_per_sqrt_s is
+            # the test's REML walk, fitted without flicker: with the bank it would count the wander twice)
+            e.random_walk_dps_per_sqrt_s = vec(p.get("allan_dps_per_sqrt_s", p["dps_per_sqrt_s"]))
             if flicker is None and p.get("flicker_bank"):
                 flicker = {a: p["flicker_bank"][a] for a in f["axes"] if a in p["flicker_bank"]}
         elif f["cause"] == "coloured_noise":
