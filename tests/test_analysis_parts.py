@@ -270,8 +270,8 @@ def test_a_look_alike_that_explains_as_much_is_named_even_below_the_per_test_lev
              "warmup": {"explained_fraction": 0.3713, "p_value": 9.5e-4},
              "scale_factor": {"explained_fraction": 0.0012, "p_value": 0.01},
              "random_walk": {"p_value": 1.0}}
-    chosen = SimpleNamespace(first=first, steps=[SimpleNamespace(cause="temperature")])
-    none = SimpleNamespace(first={}, steps=[])
+    chosen = SimpleNamespace(first=first, steps=[SimpleNamespace(cause="temperature")], cov_alikes={})
+    none = SimpleNamespace(first={}, steps=[], cov_alikes={})
     alike = look_alikes("temperature", ["z"], [none, none, chosen])
     assert [c for c, _ in alike["z"]] == ["temperature_rate", "warmup"]
 

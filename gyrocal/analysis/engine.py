@@ -253,7 +253,7 @@ tell the two apart."""
 
 
 def look_alikes(cause: str, axes: list[str],
-                per_axis: list[AxisResult]) -> dict[str, list[tuple[str, float]]]:
+                per_axis: list[AxisResult]) -> dict[str, list[tuple[str, float | None]]]:
     """Per axis, the other regression causes that explain about as much alone as ``cause`` does
     (name, share alone). Why: where every switch-on warms the same way, T, dT/dt and exp(-t_on/tau)
     have one shape; the selection names the most significant, and an outside check on `gyrocal sim`
@@ -262,10 +262,10 @@ def look_alikes(cause: str, axes: list[str],
     out = {}
     for a, r in zip(AXES, per_axis, strict=True):
         own = r.first.get(cause)
-        if a not in axes or own is None or own["explained_fraction"] <= 0:
+        if a not in axes or own is None:
             continue
         chosen = {s.cause for s in r.steps}
-        bar = CONFOUND_SHARE * own["explained_fraction"]
+        bar = CONFOUND_SHARE * own["explained_fraction"] if own["explained_fraction"] > 0 else np.inf
         # significant at the family level, not the per-test one: a warm-up that explained 37.1 % where
         # the named temperature explained 37.2 % (p = 9.5e-4, its time constant costing it power) was
         # left out, and the finding claimed a cause the log could not single out (an outside check)
@@ -275,14 +275,20 @@ def look_alikes(cause: str, axes: list[str],
                  if c not in chosen and c not in ("random_walk", "periodic") and f["p_value"] is not None
                  and min(f["p_value"], f.get("p_value_against_walk", 1.0)) < FAMILY_ALPHA
                  and f["explained_fraction"] >= bar]
+        alike.sort(key=lambda x: -x[1])
+        # then the covariates that fit the log as well in its place (causes.covariate_look_alikes; a
+        # warm-up slower than the test's grid included, so no share alone: None)
+        alike += [(c, None) for c in r.cov_alikes.get(cause, []) if c not in {x for x, _ in alike}]
         if alike:
-            out[a] = sorted(alike, key=lambda x: -x[1])
+            out[a] = alike
     return out
 
 
-def _confounded_text(cause: str, alike: dict[str, list[tuple[str, float]]]) -> str:
-    parts = [f"on axis {a}, {', '.join(f'{c} ({f:.0%})' for c, f in v)}" for a, v in alike.items()]
-    return (f"Each alone explains about as much ({'; '.join(parts)}): this log cannot tell them from "
+def _confounded_text(cause: str, alike: dict[str, list[tuple[str, float | None]]]) -> str:
+    parts = [f"on axis {a}, {', '.join(c if f is None else f'{c} ({f:.0%})' for c, f in v)}"
+             for a, v in alike.items()]
+    return (f"Each alone explains about as much, or fits the log as well in its place (no share given) "
+            f"({'; '.join(parts)}): this log cannot tell them from "
             f"{cause}, which is named as the most significant. A log with another history of the inputs "
             "(another temperature course, a warm start) would separate them.")
 

@@ -495,7 +495,15 @@ def walk_lr(lr: AxisLR, chosen: list[str]) -> WalkLR:
 
 def _walk_profiled_ml(lr: AxisLR, null: NoiseModel, causes: list[str] | tuple[str, ...]) -> float | None:
     """The largest log-likelihood (ML, up to a constant shared by every design) of baseline + ``causes``
-    on this axis' block means, with the white level and the walk intensity both re-estimated.
+    on this axis' block means, with the white level and the walk intensity both re-estimated
+    (``walk_profiled_ml`` of their design)."""
+    return walk_profiled_ml(lr, null, lr.design(causes))
+
+
+def walk_profiled_ml(lr: AxisLR, null: NoiseModel, x: np.ndarray) -> float | None:
+    """The largest log-likelihood (ML, up to a constant shared by every design) of the design ``x``
+    (M, P; the baseline and cause columns) on this axis' block means, with the white level and the
+    walk intensity both re-estimated.
 
     V = s (I + lam W) on the block means (see ``block_means``, ``walk_profile_profiled``); the scale s
     is profiled out (s = Q / n), lam runs over ``walk_grid`` of ``null`` (0 included, a parabola
@@ -507,7 +515,7 @@ def _walk_profiled_ml(lr: AxisLR, null: NoiseModel, causes: list[str] | tuple[st
     m = block_size(prob)
     if m < WALK_MIN_BLOCK_SAMPLES:
         return None
-    t, sess, xb, yb = block_means(prob, lr.design(causes), prob.y[:, lr.axis][:, None], m)
+    t, sess, xb, yb = block_means(prob, x, prob.y[:, lr.axis][:, None], m)
     n = t.size
     p = xb.shape[1]
     unit = NoiseModel(null.rate_hz / m, null.lowfreq_white_var / m, [], 0.0)
