@@ -98,7 +98,7 @@ class BlockAccumulator:
         self._reset(self._phi.shape[0])
 
 
-def _kept(score: np.ndarray, trim: float) -> np.ndarray:
+def kept_blocks(score: np.ndarray, trim: float) -> np.ndarray:
     """Indices of the blocks kept when the share ``trim`` with the largest ``score`` (B,) is left out,
     from 4 blocks on (all of them below)."""
     drop = int(trim * len(score)) if len(score) >= 4 else 0
@@ -146,7 +146,7 @@ class BlockWindow:
         if not self.blocks:
             return np.full(3, np.nan)
         r = self.residuals(coeffs_dps)
-        r = r[_kept(np.linalg.norm(r, axis=1), trim)]
+        r = r[kept_blocks(np.linalg.norm(r, axis=1), trim)]
         return np.sqrt(np.mean(r**2, axis=0))
 
     def paired_rms(self, old_coeffs_dps: np.ndarray | None, new_coeffs_dps: np.ndarray | None,
@@ -163,7 +163,7 @@ class BlockWindow:
         if not self.blocks:
             return np.full(3, np.nan), np.full(3, np.nan)
         old, new = self.residuals(old_coeffs_dps), self.residuals(new_coeffs_dps)
-        kept = _kept(np.minimum(np.linalg.norm(old, axis=1), np.linalg.norm(new, axis=1)), trim)
+        kept = kept_blocks(np.minimum(np.linalg.norm(old, axis=1), np.linalg.norm(new, axis=1)), trim)
         old, new = old[kept], new[kept]
         return np.sqrt(np.mean(old**2, axis=0)), np.sqrt(np.mean(new**2, axis=0))
 

@@ -27,7 +27,7 @@ A step is believed only when it is far beyond chance and beyond the blocks' own 
   unit's flicker: a continuum of small steps) is not cut into restarts that would keep its first
   set from ever being pushed;
 - it stands alone on its axis (``alone_ratio``);
-- ``min_before`` blocks lie before it and ``min_after`` after it. A step 4 s into a cold tumble is
+- ``min_before`` blocks lie before it and ``min_after`` after it. A step 3 s into a cold tumble is
   placed; one in the first 2 s of still data is not, and is still averaged in.
 """
 
@@ -37,13 +37,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gyrocal.daemon.blocks import Block, _kept
+from gyrocal.daemon.blocks import Block, kept_blocks
 
 
 @dataclass(frozen=True)
 class Step:
-    """A step found: on ``axis`` (0..2), before the block closed at unit time ``t_s`` [s], of
-    ``dps`` [deg/s] (the new bias minus the old), ``z`` standard errors, ``after`` blocks after it."""
+    """A step found: on ``axis`` (0..2), of ``dps`` [deg/s] (the new bias minus the old), ``z``
+    standard errors, with ``after`` blocks after it, the first of which closed at unit time ``t_s`` [s]."""
 
     axis: int
     t_s: float
@@ -103,7 +103,7 @@ def _side_rms(e: np.ndarray) -> float:
     a side of fewer must hold its level in every block. Why per side: 3 of the 4 blocks before a
     vehicle's settling ended held the slow turn's rate (198 deg/h, too slow for the still rule), and
     a quarter trimmed over both sides left them all out: the settling was taken for a 189 deg/h step."""
-    kept = _kept(np.abs(e), 0.25) if e.size >= 8 else np.arange(e.size)
+    kept = kept_blocks(np.abs(e), 0.25) if e.size >= 8 else np.arange(e.size)
     return float(np.sqrt(np.mean(e[kept] ** 2)))
 
 
