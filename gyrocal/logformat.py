@@ -243,8 +243,7 @@ def _numeric_columns(rest: str, header: list[str]) -> tuple[list[int], list[tupl
     """Indices of the columns to read, and the extra columns left out as text (a foreign CSV's
     frame id or date), judged on the first data row. Named columns are always read, so a text
     value there is an error naming its line."""
-    first = next((ln.strip() for ln in io.StringIO(rest) if ln.strip() and not ln.lstrip().startswith("#")),
-                 None)
+    first = _first_data_line(rest)
     if first is None:
         return list(range(len(header))), []
     fields = first.split(",")
@@ -263,21 +262,43 @@ def _numeric_columns(rest: str, header: list[str]) -> tuple[list[int], list[tupl
     return [i for i, h in enumerate(header) if h not in skip], ignored
 
 
+def _first_data_line(rest: str) -> str | None:
+    """The first line of ``rest`` that is neither blank nor a comment, stripped, or None; found line by
+    line, without a copy of the body (a 3-hour log's is 108 MB)."""
+    pos = 0
+    while pos < len(rest):
+        end = rest.find("\n", pos)
+        end = len(rest) if end < 0 else end
+        line = rest[pos:end].strip()
+        if line and not line.startswith("#"):
+            return line
+        pos = end + 1
+    return None
+
+
 def _fast_body(rest: str, width: int, header_line: int, keep: list[int],
                bad_counts: np.ndarray | None = None) -> tuple[np.ndarray | None, list[int]]:
     """numpy's C parser for a body of plain numeric rows (~10x the line-by-line loop), else None.
-    ``bad_counts`` (len(keep),): incremented per column by the NaN/Inf values of the rows dropped."""
-    body = rest.strip("\n")
-    if not body:
+    ``bad_counts`` (len(keep),): incremented per column by the NaN/Inf values of the rows dropped.
+
+    The body reaches the parser as UTF-8 bytes, read in chunks, with no stripped copy: as a text
+    stream (io.StringIO holds 4 bytes a character) a 3-hour 100 Hz log (108 MB) cost 2.1 GB of peak
+    memory, over the issue's 2 GB for the whole analysis (benchmarks/bench_analyze.py --long)."""
+    lo = len(rest) - len(rest.lstrip("\n")) if rest[:1] == "\n" else 0  # the blank lines around it
+    hi = len(rest)
+    while hi > lo and rest[hi - 1] == "\n":
+        hi -= 1
+    if hi <= lo:
         return np.zeros((0, len(keep))), []
-    if "#" in body or "\n\n" in body or "\r" in body:
+    if rest.find("#", lo, hi) >= 0 or rest.find("\n\n", lo, hi) >= 0 or rest.find("\r", lo, hi) >= 0:
         return None, []
-    first = body.split("\n", 1)[0]
+    nl = rest.find("\n", lo, hi)
+    first = rest[lo:hi if nl < 0 else nl]
     if first.count(",") != width - 1:
         return None, []
     try:
-        table = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2,
-                           usecols=keep if len(keep) != width else None)
+        table = np.loadtxt(io.BytesIO(rest.encode("utf-8")), delimiter=",", dtype=np.float64, ndmin=2,
+                           usecols=keep if len(keep) != width else None, encoding="utf-8")
     except ValueError:
         return None, []
     if table.shape[1] != len(keep):
@@ -287,7 +308,7 @@ def _fast_body(rest: str, width: int, header_line: int, keep: list[int],
         return table, []
     if bad_counts is not None:
         bad_counts += (~np.isfinite(table[bad])).sum(axis=0)
-    first = header_line + 1 + (len(rest) - len(rest.lstrip("\n")))  # the file line of the first row
+    first = header_line + 1 + lo  # the file line of the first row
     return table[~bad], [int(first + i) for i in np.flatnonzero(bad)]
 
 

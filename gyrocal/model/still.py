@@ -274,14 +274,21 @@ def _differences(x: np.ndarray, prev: np.ndarray | None,
 
 
 def _stats_rows(x: np.ndarray, d1: np.ndarray, d2: np.ndarray, w: int, sel: slice) -> np.ndarray:
-    """The STATS_COLUMNS rows ``sel`` of samples x (N, 6) and their differences d1, d2 (N, 6)."""
-    mean, std, halves = _rolling(np.hstack([x, d1, d2]), w, halves=True)
+    """The STATS_COLUMNS rows ``sel`` of samples x (N, 6) and their differences d1, d2 (N, 6).
+
+    x, d1 and d2 go through ``_rolling`` one at a time, the differences without halves: each column's
+    figures are its own whatever runs beside it (``_rolling``), and the three together (N, 18) held
+    about ten such arrays at once, 1.9 GB of a 3-hour 100 Hz log's analysis (over the issue's 2 GB
+    with the rest: benchmarks/bench_analyze.py --long)."""
     out = np.empty((sel.stop - sel.start, STATS_COLUMNS))
+    mean, std, halves = _rolling(x, w, halves=True)
     out[:, GYRO_MEAN] = mean[sel, 0:3]
-    out[:, 3:9] = std[sel, 0:6]  # GYRO_STD, ACCEL_STD
-    out[:, 9:15] = halves[sel, 0:6]  # GYRO_TURN, ACCEL_TURN
-    out[:, 15:27] = std[sel, 6:18]  # GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2
     out[:, ACCEL_MEAN] = mean[sel, 3:6]
+    out[:, 3:9] = std[sel]  # GYRO_STD, ACCEL_STD
+    out[:, 9:15] = halves[sel]  # GYRO_TURN, ACCEL_TURN
+    del mean, std, halves
+    out[:, 15:21] = _rolling(d1, w)[1][sel]  # GYRO_D1, ACCEL_D1
+    out[:, 21:27] = _rolling(d2, w)[1][sel]  # GYRO_D2, ACCEL_D2
     return out
 
 
