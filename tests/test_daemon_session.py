@@ -1346,7 +1346,7 @@ def test_a_bias_step_in_a_cold_tumble_starts_learning_again_after_it(tmp_path: P
 
 def test_a_bias_step_just_before_a_cold_units_constant_is_taken_out(tmp_path: Path) -> None:
     """A cold unit at one pose gets its constant alone after 60 s with no new direction. A 100 deg/h
-    step of x 5-18 s before that push was averaged into it; its in-sample residual (41-80 deg/h) became
+    step of x 4-17 s before that push was averaged into it; its in-sample residual (41-80 deg/h) became
     the alarm's baseline and no alarm fired, and an alarm on a constant alone never starts learning
     again: x was left 72.9-93.5 deg/h off to the end of every drive (an outside re-check, its worst
     case the step at 58 s). The constant's blocks are watched for a step while the unit holds it, and
