@@ -1664,23 +1664,18 @@ class Session(RecoveryMixin):
         self.bias_steps.append({"axis": "xyz"[step.axis], "dph": round(step.dps * DPH, 2),
                                 "unit_time_s": round(step.t_s, 2), "z": round(step.z, 1)})
         held = self._applied_coeffs()
-        restart = "from nothing"
+        # from a warm start's set, or a set of this session: a cold unit's constant alone at one pose,
+        # whose own bias stage then takes the step out at once (learning from nothing, it waited 60 s more)
         if self.applied is not None and held is not None \
-                and (self.learner.has_prior or self.last_push.get("status") == "acked"):
-            # a warm start's, or a set of this session: a cold unit's constant alone at one pose, whose
-            # own bias stage then takes the step out at once (learning from nothing, it waited 60 s more)
-            prior = self._held_prior(self.applied.version, held, True)[0]
-            learner = Learner(self.cfg, prior, self.rate_hz)
-            if learner.prior is not None:
-                restart = f"from v{self.applied.version}, the set it holds"
-                self._learn_again(learner)
-                self._relearning = True
-                self._relearned_at, self._relearned_from = self._t_last, self.applied.version
-        if restart == "from nothing":
+                and (self.learner.has_prior or self.last_push.get("status") == "acked") \
+                and self._learn_again_from_held(self.applied.version, held):
+            restart = f"from v{self.applied.version}, the set it holds"
+        else:
+            restart = "from nothing"
             self._learn_again(self.learner.fresh())
-        # its bias stage (a cold unit's constant alone) is due again: a step found as that stage was
-        # validated would leave it marked done, and the constant would not be learnt again
-        self._bias_pushed, self._bias_partial = False, False
+            # its bias stage (a cold unit's constant alone) is due again: a step found as that stage was
+            # validated would leave it marked done, and the constant would not be learnt again
+            self._bias_pushed, self._bias_partial = False, False
         self.reason = (f"the {'xyz'[step.axis]} bias stepped by {step.dps * DPH:+.3g} deg/h at about unit "
                        f"time {step.t_s:.1f} s: learning starts again {restart}")
         log.warning("unit %s: %s (%.0f standard errors, %d still blocks after it; step %d of at most %d "
@@ -1707,14 +1702,22 @@ class Session(RecoveryMixin):
         wait = self.RELEARN_MIN_S if self.applied.version == self._relearned_from else self.RELEARN_NEWER_S
         if self._t_last - self._relearned_at < wait:
             return
-        learner = Learner(self.cfg, self._held_prior(self.applied.version, held, True)[0], self.rate_hz)
+        if self._learn_again_from_held(self.applied.version, held):
+            log.info("unit %s: learning starts again from v%d, the set it holds: its bias stage on the "
+                     "samples from the alarm on", self.hello.serial, self.applied.version)
+
+    def _learn_again_from_held(self, version: int, held: np.ndarray) -> bool:
+        """Learning starts again from the set the unit holds (v``version``, ``held`` in this session's
+        term order), as at a warm switch-on: its bias stage on the samples from here is due. False
+        (nothing changed) when that set cannot be a learner's prior. For a drift alarm and a bias step
+        alike (``_relearn_after_alarm``, ``_step_found``)."""
+        learner = Learner(self.cfg, self._held_prior(version, held, True)[0], self.rate_hz)
         if learner.prior is None:
-            return
+            return False
         self._learn_again(learner)
-        self._relearned_at, self._relearned_from = self._t_last, self.applied.version
+        self._relearned_at, self._relearned_from = self._t_last, version
         self._bias_pushed, self._bias_partial, self._relearning = False, False, True
-        log.info("unit %s: learning starts again from v%d, the set it holds: its bias stage on the samples "
-                 "from the alarm on", self.hello.serial, self.applied.version)
+        return True
 
     def _applied_coeffs(self) -> np.ndarray | None:
         """The unit's set in this session's term order (a held subset is padded with zeros), or None if
