@@ -245,7 +245,7 @@ def test_monitoring_raises_a_drift_alarm_when_the_residual_grows(tmp_path: Path)
     assert not s.alarm
     assert h.unit.stream is not None
     h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([0.0, 0.02, 0.0])  # the bias walks off
-    h.run(15)
+    h.run(15, until=lambda h: s.alarm)
     assert s.alarm
     assert s.status()["alarm"] is True
 
@@ -1208,6 +1208,20 @@ def test_a_bias_step_mid_switch_on_is_taken_out_by_a_new_bias_stage(tmp_path: Pa
     assert left["x"] * 3600 < 2.0 and not s.alarm, (left, s.alarm)
 
 
+def test_the_alarm_clears_when_the_set_that_takes_the_step_out_is_acked(tmp_path: Path) -> None:
+    """The alarm was about the set held when it fired. Kept until the new set's first judgement
+    (8 monitor blocks), status said `alarm: true` for 5.5-5.7 s after the set that took a 100 deg/h
+    step out was acked, the unit left 0.3-2 deg/h (an outside re-check, F5)."""
+    h, s = _warm_at_rest(tmp_path)
+    v = s.last_push["version"]
+    h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([100.0, 0.0, 0.0]) / 3600.0
+    h.run(15, until=lambda h: s.alarm)
+    assert s.alarm
+    h.run(15, until=lambda h: s.last_push["version"] > v and s.last_push.get("status") == "acked")
+    assert s.last_push["version"] > v and h.unit.status()["drift_rms_compensated_dps"]["x"] * 3600 < 2.0
+    assert not s.alarm and s.status()["alarm"] is False
+
+
 def test_validation_judges_a_refinement_without_the_blocks_of_a_turn_too_slow_for_the_still_rule(
         tmp_path: Path) -> None:
     """The roll of 0.06 deg in 1.1 s between rests again: validation compared the held set and the new
@@ -1342,6 +1356,31 @@ def test_a_bias_step_in_a_cold_tumble_starts_learning_again_after_it(tmp_path: P
     h.run(5)
     left = h.unit.status()["drift_rms_compensated_dps"]
     assert left["x"] * 3600 < 1.5 and not s.alarm, left
+
+
+def test_a_bias_step_before_a_cold_units_first_set_on_a_road_does_not_restart_its_wait(
+        tmp_path: Path) -> None:
+    """A cold unit on a road drive (4 rests tilted under 1.7 deg, too few directions for a full set)
+    gets its constant alone once no new direction has come for 60 s. A 100 deg/h step of x 45 s in
+    started learning again from nothing, whose rank rose again over the rests already seen: counted
+    as new directions, they put the constant off to 122 s (an outside re-check: 121.8 s, 78 s
+    without the step). The wait counts from the last direction new to the switch-on."""
+    from gyrocal.sim.schedule import Schedule
+    from tests.test_still_rule import _tilted
+
+    h = Harness.make(tmp_path)
+    r = np.random.default_rng(5)
+    h.unit.schedule = Schedule(np.array([_tilted(*r.uniform(-1.7, 1.7, 2)) for _ in range(4)]), 4.23, 1.25)
+    h.switch_on()
+    h.run(45)
+    assert not h.session.last_push
+    h.unit.stream.bias_dps = h.unit.stream.bias_dps + np.array([100.0, 0.0, 0.0]) / 3600.0
+    h.run(45, until=_pushed)
+    s = h.session
+    assert [b["axis"] for b in s.bias_steps] == ["x"], s.bias_steps
+    assert s.last_push.get("status") == "acked", s.reason
+    h.run(2)
+    assert h.unit.status()["drift_rms_compensated_dps"]["x"] * 3600 < 2.0
 
 
 def test_a_bias_step_just_before_a_cold_units_constant_is_taken_out(tmp_path: Path) -> None:
