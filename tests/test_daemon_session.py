@@ -1334,6 +1334,33 @@ def test_a_bias_step_before_any_push_of_a_warm_switch_on_is_alarmed(tmp_path: Pa
         h.run(10)
 
 
+def test_a_bias_step_1_s_into_a_warm_switch_on_is_placed_and_taken_out(tmp_path: Path) -> None:
+    """A warm switch-on at rest whose held set is right; the x bias steps by 100 deg/h 1 s in. With 3
+    still blocks asked before a step, none was placed: the bias stages averaged the first second in,
+    and x was left 5 deg/h off 20 s after, 2.4-2.6 for good, with the alarm off (in process). And once
+    the held set was watched (its reference taken over blocks holding the step) the step was looked
+    for only before validations: 11-15 s over 10 deg/h. It is looked for every 2 blocks now."""
+    from gyrocal.sim.schedule import still
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    h.run(2)
+    bias = h.unit.stream.bias_dps.copy()
+    h.unit.schedule = still((0.0, 0.0, 1.0))
+    h.switch_on()
+    h.unit.stream.bias_dps = bias.copy()
+    h.run(1.0)
+    h.unit.stream.bias_dps = bias + np.array([100.0, 0.0, 0.0]) / 3600.0
+    h.run(12)
+    s = h.session
+    assert [b["axis"] for b in s.bias_steps] == ["x"], s.bias_steps
+    for _ in range(3):
+        left = h.unit.status()["drift_rms_compensated_dps"]
+        assert left["x"] * 3600 < 2.0, left
+        h.run(10)
+
+
 def test_a_bias_step_in_a_cold_tumble_starts_learning_again_after_it(tmp_path: Path, caplog) -> None:
     """A unit whose x bias steps by 60 deg/h 20 s into its first tumble (a shock). Learning on every
     sample, the daemon pushed nothing for 250 s ("converged, but predicted drift left 14.2 deg/h",

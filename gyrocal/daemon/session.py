@@ -993,8 +993,8 @@ class Session(RecoveryMixin):
                 else:
                     self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED, State.MONITORING):
-            if self._unwatched() and self._step_found():
-                return  # no alarm can start learning again: it starts again after the step
+            if self._step_found():
+                return  # learning starts again after the step
             self._watch_held()
             if self.validated_rms is not None or self._watch_rms is not None:
                 # a set of this session is held: its drift is watched whatever learning is doing. In
@@ -1645,26 +1645,24 @@ class Session(RecoveryMixin):
     STEP_RESTARTS_MAX = 3
     """Bias steps per switch-on that start learning again: a walking bias (a continuum of small steps)
     that passed the check's tests could otherwise keep a first set from ever being pushed."""
-
-    def _unwatched(self) -> bool:
-        """No drift alarm can start learning again: no set of this session is held (nor watched), or
-        the unit holds a constant alone, which an alarm does not relearn (``_relearn_after_alarm``).
-        A cold unit at one pose whose bias stepped 2 s before its constant was pushed raised the alarm,
-        and was left 95 deg/h off with it (in process)."""
-        if self.validated_rms is None and self._watch_rms is None:
-            return True
-        held = self._applied_coeffs()
-        return held is not None and _constant_only(self.names, held)
+    EARLY_BLOCKS = 3
+    """A step with fewer still blocks than this before it is said to be a step or the unit settling:
+    one block before a step is enough to place it (stepcheck.py), and a unit's turn-on transient
+    looks the same (a flicker unit's y: 17 deg/h at 1.1 s, benchmarks/bench_wander_gate.py seed 4).
+    Learning starts again after it either way, which loses those blocks alone."""
 
     def _step_found(self, every_block: bool = False) -> bool:
         """A step of the bias in the data the estimator is learning from (stepcheck.py): learning
         starts again after it, from the set the unit holds (as after a drift alarm) or, with none, from
-        nothing; True if so. Checked as each 2 blocks come while no alarm can start learning again
-        (``_unwatched``), and before every validation, a bias stage's too
-        (``every_block``): a set learnt across the step takes the average of the two biases, and its
+        nothing; True if so. Checked as each 2 blocks come, and before every validation, a bias stage's
+        too (``every_block``): a set learnt across the step takes the average of the two biases, and its
         residual, which holds the step, would become the drift alarm's reference (an outside re-check:
         a cold unit at one pose, a 100 deg/h step 17 s before its constant was pushed, left 72.9 deg/h
-        off with the alarm off for 238 s, to the end of its run)."""
+        off with the alarm off for 238 s, to the end of its run). Checked only while no alarm could
+        start learning again, a warm unit whose held set was watched over blocks that already held a
+        step 2.5-3 s in waited for the next validation: 8.5-15 s over 10 deg/h with the alarm off, now
+        5.5-7 (in process, ``benchmarks/bench_bias_step.py`` part ``warm``). A step with fewer than
+        EARLY_BLOCKS still blocks before it may be the unit settling after switch-on: its line says so."""
         if len(self.bias_steps) >= self.STEP_RESTARTS_MAX:
             return False
         if not every_block and self._learnt_n < self._step_checked + 2:
@@ -1674,7 +1672,8 @@ class Session(RecoveryMixin):
         if step is None:
             return False
         self.bias_steps.append({"axis": "xyz"[step.axis], "dph": round(step.dps * DPH, 2),
-                                "unit_time_s": round(step.t_s, 2), "z": round(step.z, 1)})
+                                "unit_time_s": round(step.t_s, 2), "z": round(step.z, 1),
+                                "blocks_before": step.before})
         held = self._applied_coeffs()
         # from a warm start's set, or a set of this session: a cold unit's constant alone at one pose,
         # whose own bias stage then takes the step out at once (learning from nothing, it waited 60 s more)
@@ -1690,8 +1689,10 @@ class Session(RecoveryMixin):
             self._bias_pushed, self._bias_partial = False, False
         self.reason = (f"the {'xyz'[step.axis]} bias stepped by {step.dps * DPH:+.3g} deg/h at about unit "
                        f"time {step.t_s:.1f} s: learning starts again {restart}")
-        log.warning("unit %s: %s (%.0f standard errors, %d still blocks after it; step %d of at most %d "
-                    "this switch-on)", self.hello.serial, self.reason, step.z, step.after,
+        early = "" if step.before >= self.EARLY_BLOCKS else \
+            f", {step.before} before it: a step, or the unit still settling"
+        log.warning("unit %s: %s (%.0f standard errors, %d still blocks after it%s; step %d of at most %d "
+                    "this switch-on)", self.hello.serial, self.reason, step.z, step.after, early,
                     len(self.bias_steps), self.STEP_RESTARTS_MAX)
         self.state = State.COLLECTING
         return True
