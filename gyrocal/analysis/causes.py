@@ -58,6 +58,10 @@ on tomisuarez static z, see docs/analysis.md)."""
 COVARIATES_AGAINST_WALK = True
 """Before a walk is named, weigh the covariates (temperature, its rate, warm-up) against it with its
 intensity re-estimated (``_covariates_against_walk``); False restores the rule before 2026-11-27."""
+WALK_ALIKE_CALIBRATED = True
+"""A covariate named instead of the walk lists ``random_walk`` in ``confounded_with`` when its D against
+the walk, referred to draws of the fitted walk null (``walkboot.calibrated_p``) instead of chi-square,
+has p >= ``FAMILY_ALPHA`` (``_walk_as_look_alike``); False restores the finding without it."""
 WALK_TAU_S = 1.0
 """The held-out confirmation averages over at least this time [s]: a walk is slow, and at the short
 tau a periodic finding sets (0.007 s for the 35 Hz line of mikoff imu1) the white noise swamps its
@@ -85,6 +89,8 @@ class AxisResult:
     walk_alikes: list[tuple[str, float]] = field(default_factory=list)  # see _walk_look_alikes
     # named covariate -> the covariates the log does not tell from it (see covariate_look_alikes)
     cov_alikes: dict[str, list[str]] = field(default_factory=dict)
+    # covariate named instead of the walk -> the causes it was tested against the walk given
+    against_walk: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 def _ms(prob: Problem, r: np.ndarray, tau_s: float) -> float:
@@ -180,6 +186,9 @@ def select_axis(
                 chosen.pop()
                 res.steps.pop()
             admitted = True
+            base = [c.cause for c in (chosen[:-1] if walk_named else chosen)]
+            for c, _, _ in add:  # what each was tested given (a pair's member: given the other too)
+                res.against_walk[c.cause] = tuple(base + [o.cause for o, _, _ in add if o is not c])
             for c, frac, p in add:
                 chosen.append(c)
                 res.steps.append(Step(c.cause, frac, p, int(prob.block.max()) + 1))
@@ -192,6 +201,8 @@ def select_axis(
             res.walk_alikes = _walk_look_alikes(prob, lr, chosen[:-1], cands, r_pre, res, heldout, tau_s)
     if COVARIATE_LOOK_ALIKES:
         res.cov_alikes = covariate_look_alikes(lr, [c.cause for c in chosen if c.cause != "random_walk"])
+    if WALK_ALIKE_CALIBRATED:
+        _walk_as_look_alike(lr, res, [c.cause for c in chosen])
     res.first = first
     res.r_ext = r_cur
     res.lr = lr
@@ -304,6 +315,39 @@ def _covariates_against_walk(
     if sum(f for _, f, _ in out) < MIN_FRACTION_OF_BASELINE:
         return []
     return out
+
+
+def _walk_as_look_alike(lr: AxisLR, res: AxisResult, chosen: list[str]) -> None:
+    """Add ``random_walk`` to ``res.cov_alikes`` of each covariate named instead of the walk
+    (``_covariates_against_walk``) that the log does not prefer to a walk at the family level.
+
+    The chi-square p of ``lrtest.test_against_walk`` is too small when the wander is a walk: on a
+    short log the walk's intensity is read from few low-frequency degrees of freedom, and a slow
+    covariate column takes part of one walk path (``walkboot``). A 0.6 sigma walk injected on mikoff
+    imu2 y (160 s, one session) was named warmup there (chi-square p = 1.3e-5 with the grid's factor
+    9), a wrong cause, unflagged; against 4000 draws of the fitted walk null, p = 0.020. So a
+    covariate whose D against the walk has p >= ``FAMILY_ALPHA`` against those draws lists the
+    walk: the log cannot tell the two apart. Only a flag: the draws cannot be the gate, because a
+    covariate effect on a white log makes the fitted null a walk of the effect's size, and then a
+    temperature effect fails it as often as a walk passes (bench_covariate_walk.py, see
+    docs/analysis.md, "A walk named as a covariate"). Given: the causes named before it (and, for
+    a pair, its partner), as when it was admitted.
+    """
+    from gyrocal.analysis.holdout import FAMILY_ALPHA
+    from gyrocal.analysis.walkboot import calibrated_p
+
+    for cause, given in res.against_walk.items():
+        if cause not in chosen:
+            continue
+        p = calibrated_p(lr, list(given), (cause,), FAMILY_ALPHA, draws=WALK_ALIKE_DRAWS)
+        if p is not None and p >= FAMILY_ALPHA:
+            alike = res.cov_alikes.setdefault(cause, [])
+            if "random_walk" not in alike:
+                alike.append("random_walk")
+
+
+WALK_ALIKE_DRAWS = 1000
+"""Draws of the walk null per flag (``_walk_as_look_alike``): p near ``FAMILY_ALPHA`` = 0.01 to +-0.003."""
 
 
 COVARIATE_LOOK_ALIKES = True
