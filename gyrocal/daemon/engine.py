@@ -286,6 +286,14 @@ class Engine(CommandsMixin):
             log.warning("stopping with the push of v%d under way: its record stays pending; the next "
                         "start closes it as abandoned, and the unit's read-back says whether it applied it",
                         s.push.write.version)
+        if s is not None and s.unrecorded:
+            s._flush_unrecorded(time.monotonic())  # a last try: the store may be back
+        if s is not None and s.unrecorded:
+            # an acked result held in memory went with the process without a word (an integrator's
+            # fault campaign, F1); the next start's read-back settles the record from the unit
+            log.warning("stopping with %d push result(s) the store could not take (%s): their records "
+                        "stay as they were; the unit's read-back at the next start settles them",
+                        len(s.unrecorded), ", ".join(f"v{v} {p.get('status')}" for v, p in s.unrecorded))
         if self.control is not None:
             self.control.stop()
         if self.link is not None:

@@ -63,6 +63,7 @@ class Agreement:
     agree: bool
     note: str
     own_bias_dph: list[float] | None = None  # the unit's boot-measured constant minus the stored one
+    store_failed: bool = False  # the store could not take the settled status: to be tried again
 
     def as_dict(self) -> dict[str, Any]:
         out = {"agree": self.agree, "note": self.note, "unit_version": self.unit_version,
@@ -100,8 +101,8 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
               report: Any = None, own_boot_bias: bool = False) -> Agreement:
     """Bring the store into line with a read-back of ``version`` with wire ``crc`` (see module doc).
 
-    Raises nothing for a store that cannot be written: the caller gets the agreement with a note,
-    and the next read-back tries again.
+    Raises nothing for a store that cannot be written: the caller gets the agreement with a note and
+    ``store_failed``, and tries again (``Session._reconcile_again``).
     """
     if version == 0:
         coeffs = getattr(report, "coeffs_dps", None)
@@ -145,7 +146,8 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
                                             "reconciled_utc": utc_now()})
     except Exception as err:  # a full disk: say so, retry at the next read-back
         return Agreement(version, crc, status, False,
-                         f"the unit holds v{version} (stored as {status!r}); store not updated: {err}")
+                         f"the unit holds v{version} (stored as {status!r}); store not updated: {err}",
+                         store_failed=True)
     if acked:
         log.info("unit %d holds v%d, acked before its read-back was lost: read back now, recorded as acked",
                  serial, version)

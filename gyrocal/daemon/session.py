@@ -944,6 +944,8 @@ class Session(RecoveryMixin):
     def tick(self, now: float) -> None:
         if self.unrecorded and now >= self._store_retry_at:
             self._flush_unrecorded(now)
+        if self._reconcile_again and now >= self._store_retry_at:
+            self._settle_again(now)
         if self.push is not None:
             self.push.tick(now)
             if self.push.finished:
@@ -993,8 +995,8 @@ class Session(RecoveryMixin):
                 else:
                     self._north_found()
         if self.state in (State.COLLECTING, State.CONVERGED, State.MONITORING):
-            if self._step_found():
-                return  # learning starts again after the step
+            if self._unwatched() and self._step_found():
+                return  # no alarm can start learning again: it starts again after the step
             self._watch_held()
             if self.validated_rms is not None or self._watch_rms is not None:
                 # a set of this session is held: its drift is watched whatever learning is doing. In
@@ -1645,6 +1647,20 @@ class Session(RecoveryMixin):
     STEP_RESTARTS_MAX = 3
     """Bias steps per switch-on that start learning again: a walking bias (a continuum of small steps)
     that passed the check's tests could otherwise keep a first set from ever being pushed."""
+    def _unwatched(self) -> bool:
+        """No drift alarm can start learning again: no set of this session is held (nor watched), or
+        the unit holds a constant alone, which an alarm does not relearn (``_relearn_after_alarm``).
+        A cold unit at one pose whose bias stepped 2 s before its constant was pushed raised the alarm,
+        and was left 95 deg/h off with it (in process). Checked every 2 blocks whatever watched the
+        drift, a warm-up from 5 degC was taken for a 16 deg/h step 4 s in, and learning started again
+        without the first seconds of the warm-up its rate terms needed (rank 12 of 13 at the end:
+        tests/test_daemon_refine.py); a held set watched over blocks holding a step 2.5-3 s in waits
+        for the next validation instead (8.5-15 s over 10 deg/h with the alarm off, in process)."""
+        if self.validated_rms is None and self._watch_rms is None:
+            return True
+        held = self._applied_coeffs()
+        return held is not None and _constant_only(self.names, held)
+
     EARLY_BLOCKS = 3
     """A step with fewer still blocks than this before it is said to be a step or the unit settling:
     one block before a step is enough to place it (stepcheck.py), and a unit's turn-on transient
@@ -1654,15 +1670,13 @@ class Session(RecoveryMixin):
     def _step_found(self, every_block: bool = False) -> bool:
         """A step of the bias in the data the estimator is learning from (stepcheck.py): learning
         starts again after it, from the set the unit holds (as after a drift alarm) or, with none, from
-        nothing; True if so. Checked as each 2 blocks come, and before every validation, a bias stage's
-        too (``every_block``): a set learnt across the step takes the average of the two biases, and its
-        residual, which holds the step, would become the drift alarm's reference (an outside re-check:
-        a cold unit at one pose, a 100 deg/h step 17 s before its constant was pushed, left 72.9 deg/h
-        off with the alarm off for 238 s, to the end of its run). Checked only while no alarm could
-        start learning again, a warm unit whose held set was watched over blocks that already held a
-        step 2.5-3 s in waited for the next validation: 8.5-15 s over 10 deg/h with the alarm off, now
-        5.5-7 (in process, ``benchmarks/bench_bias_step.py`` part ``warm``). A step with fewer than
-        EARLY_BLOCKS still blocks before it may be the unit settling after switch-on: its line says so."""
+        nothing; True if so. Checked as each 2 blocks come while no alarm can start learning again
+        (``_unwatched``), and before every validation, a bias stage's too (``every_block``): a set
+        learnt across the step takes the average of the two biases, and its residual, which holds the
+        step, would become the drift alarm's reference (an outside re-check: a cold unit at one pose, a
+        100 deg/h step 17 s before its constant was pushed, left 72.9 deg/h off with the alarm off for
+        238 s, to the end of its run). A step with fewer than EARLY_BLOCKS still blocks before it may
+        be the unit settling after switch-on: its line says so."""
         if len(self.bias_steps) >= self.STEP_RESTARTS_MAX:
             return False
         if not every_block and self._learnt_n < self._step_checked + 2:

@@ -52,6 +52,7 @@ class RecoveryMixin:
     _retry: Any
     _push_due: Any = None
     _disagreement_said: str | None = None
+    _reconcile_again: dict[int, Any] | None = None  # version -> its read-back the store could not settle
 
     def _forget_set(self) -> None: ...  # Session's: the unit's set is unknown until read again
 
@@ -118,8 +119,15 @@ class RecoveryMixin:
         try:
             crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps) if msg.version else None
             held = self._held_in_memory(msg.version, crc)
-            self.agreement = (held or reconcile(self.store, self.hello.serial, msg.version, crc, msg,
-                                                own_boot_bias=self.caps.own_boot_bias)).as_dict()
+            agreement = held or reconcile(self.store, self.hello.serial, msg.version, crc, msg,
+                                          own_boot_bias=self.caps.own_boot_bias)
+            self.agreement = agreement.as_dict()
+            if agreement.store_failed:
+                # a read-only store at the read-back: the record stayed 'pending' for good, status said
+                # the unit disagreed with it after the store was writable again, and the next start
+                # closed the set the unit had acked and held as 'abandoned' (an integrator's fault
+                # campaign, F1). Settled again every STORE_RETRY_S (_settle_again)
+                self._reconcile_again = {**(self._reconcile_again or {}), msg.version: msg}
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
         lp = self.last_push
@@ -173,6 +181,29 @@ class RecoveryMixin:
             self.store_error = str(err)
             self.unrecorded.append((version, push))
             self._store_retry_at = now + self.STORE_RETRY_S
+
+    def _settle_again(self, now: float) -> None:
+        """Settle again the records of read-backs the store could not take (``_reconcile_again``),
+        every STORE_RETRY_S until it does. A set the unit has replaced since is settled too (it held
+        it); status's agreement changes only for the set it holds now."""
+        waiting, self._reconcile_again = self._reconcile_again or {}, None
+        for version, msg in waiting.items():
+            crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
+            try:
+                agreement = reconcile(self.store, self.hello.serial, version, crc, msg,
+                                      own_boot_bias=self.caps.own_boot_bias)
+            except Exception:  # the store is advisory here, as in _reconcile
+                agreement = None
+            if agreement is None or agreement.store_failed:
+                self._reconcile_again = {**(self._reconcile_again or {}), version: msg}
+                continue
+            if self.agreement.get("unit_version") == version:
+                self.agreement = agreement.as_dict()
+            log.info("store available again: the unit's v%d settled as %s", version, agreement.store_status)
+        if self._reconcile_again:
+            self._store_retry_at = now + self.STORE_RETRY_S
+        elif self.store_error is not None and not self.unrecorded:
+            self.store_error = None
 
     def _flush_unrecorded(self, now: float) -> None:
         pending, self.unrecorded = self.unrecorded, []
