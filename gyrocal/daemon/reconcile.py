@@ -144,7 +144,7 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
         store.update_push(serial, version, {"status": new, "acked_crc": crc,
                                             "readback_ok": True, "history": history,
                                             "reconciled_utc": utc_now()})
-    except Exception as err:  # a full disk: say so, retry at the next read-back
+    except Exception as err:  # a full disk: say so; the caller tries again (store_failed)
         return Agreement(version, crc, status, False,
                          f"the unit holds v{version} (stored as {status!r}); store not updated: {err}",
                          store_failed=True)
