@@ -944,6 +944,31 @@ def test_samples_between_an_applied_write_and_its_late_ack_raise_no_drift_alarm(
     assert max(left.values()) < 2e-3  # the set itself is good: under 7.2 deg/h
 
 
+def test_a_read_back_of_the_set_being_pushed_is_not_called_foreign_nor_ack_lost(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A cable pulled mid-push: the unit applied v1, its ack was lost, and the read-back at the
+    reconnect came before the retry's ack. It was said "not written by this daemon" and "holds v1
+    although its push ended 'pending': recorded as applied (ack lost)", two false WARNINGs, and the
+    push's ack then overwrote that record (an integrator's fault campaign, F3)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.unit.faults.lose_ack = 1
+    h.run(90, until=lambda h: h.session.push is not None and h.session.push.attempts >= 1)
+    s = h.session
+    v = s.push.write.version
+    h.run(0.1)
+    assert s.push is not None  # its ack lost, the retry not yet due
+    with caplog.at_level(logging.INFO):
+        s.relink(h.now)  # the link came back: the unit's set is read again
+        h.run(0.1)
+        assert s.agreement.get("unit_version") == v and s.agreement["agree"], s.agreement
+        h.run(5, until=lambda h: s.push is None)
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert not [m for m in said if "not written by this daemon" in m or "ack lost" in m], said
+    assert s.last_push["status"] == "acked" and h.store.get(4242, v).push["status"] == "acked"
+    assert any("the set being pushed, before its ack was heard" in r.getMessage() for r in caplog.records)
+
+
 def test_a_bias_stage_the_store_could_not_record_comes_first_when_it_returns(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

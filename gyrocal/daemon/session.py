@@ -83,7 +83,15 @@ from gyrocal.daemon.store import APPLIED_STATUSES, CalibrationRecord, utc_now
 from gyrocal.model.earth import vertical_earth_rate_dps
 from gyrocal.model.prep import block_terms
 from gyrocal.model.terms import TermSpec
-from gyrocal.protocol.messages import SEQ_MODULO, CoeffAck, CoeffReport, CoeffWrite, Hello, NakReason
+from gyrocal.protocol.messages import (
+    SEQ_MODULO,
+    CoeffAck,
+    CoeffReport,
+    CoeffWrite,
+    Hello,
+    NakReason,
+    coeff_set_crc,
+)
 from gyrocal.protocol.termsets import TempRate, names_for, terms_id
 
 log = logging.getLogger("gyrocal.session")
@@ -370,6 +378,13 @@ class Session(RecoveryMixin):
         self.stray_acks += 1
         return False
 
+    def _being_pushed(self, msg: CoeffReport) -> bool:
+        """Whether ``msg`` reports the very set of the push under way (version, terms and CRC)."""
+        w = None if self.push is None else self.push.write
+        return w is not None and w.version == msg.version and w.terms_id == msg.terms_id and \
+            coeff_set_crc(w.version, w.terms_id, w.coeffs_dps) == \
+            coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
+
     def on_report(self, msg: CoeffReport, now: float) -> None:
         """The unit's set: checked, reconciled with the store, then the base of learning."""
         why = check_report(msg)
@@ -391,6 +406,14 @@ class Session(RecoveryMixin):
             self._watch_afresh()
             log.info("unit %s: it holds v%d where v%d was: the drift monitor starts again", self.hello.serial,
                      applied.version, before.version)
+        elif before is None and self.applied is not None and not self.applied.same_as(applied) \
+                and self._being_pushed(msg):
+            # the set this daemon is pushing, applied before its ack was heard (a cable out mid-push:
+            # the read-back at the reconnect came first). Said "not written by this daemon" with a
+            # WARNING (an integrator's fault campaign, F3); the push itself records the result
+            self._watch_afresh()
+            log.info("unit %s: it holds v%d, the set being pushed, before its ack was heard: the drift "
+                     "monitor starts again on it", self.hello.serial, applied.version)
         elif before is None and self.applied is not None and not self.applied.same_as(applied):
             # unasked, the unit reports a set other than the one learning rebuilds its raw rate with:
             # a ground station wrote an autopilot's compensation (an integrator's audit: the daemon

@@ -56,6 +56,8 @@ class RecoveryMixin:
 
     def _forget_set(self) -> None: ...  # Session's: the unit's set is unknown until read again
 
+    def _being_pushed(self, msg: CoeffReport) -> bool: ...  # Session's: the set of the push under way
+
     def _send(self, msg: Any) -> bool:
         """Send to the unit; a link failure is counted and logged once per outage, never raised."""
         try:
@@ -119,6 +121,13 @@ class RecoveryMixin:
         try:
             crc = coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps) if msg.version else None
             held = self._held_in_memory(msg.version, crc)
+            if held is None and self._being_pushed(msg):
+                # its record is 'pending' because its push is under way, not because it ended so:
+                # "holds v8 although its push ended 'pending': recorded as applied (ack lost)" was
+                # said mid-push, and the push's own ack then overwrote that record (F3)
+                held = Agreement(msg.version, crc, "pending", True,
+                                 f"the unit holds v{msg.version}, the set being pushed (its ack not heard "
+                                 "yet)")
             agreement = held or reconcile(self.store, self.hello.serial, msg.version, crc, msg,
                                           own_boot_bias=self.caps.own_boot_bias)
             self.agreement = agreement.as_dict()
