@@ -317,6 +317,11 @@ def test_push_file_carries_the_temperature_range_its_set_was_learnt_over(tmp_pat
     ("terms: ['1', gx]\ncoefficients: {x: [1, 2], y: [1, .nan], z: [1, 2]}\n", ".yaml",
      "'coefficients.y[1]'"),
     ("terms: ['1', gx]\ncoefficients: {x: [1, 2], y: [1, 'a'], z: [1, 2]}\n", ".yaml", "(term 'gx')"),
+    # said by the daemon, without the file or the field (an integrator's check, F7)
+    ("terms: ['1', gx]\ncoefficients: {x: [50, 2], y: [1, 2], z: [1, 2]}\n", ".yaml",
+     "'coefficients.x[0]' (term '1') is 50 deg/s per term unit, beyond the 10"),
+    ("terms: ['1', gq]\ncoefficients: {x: [1, 2], y: [1, 2], z: [1, 2]}\n", ".yaml",
+     "field 'terms': 'gq' is not an atom a unit evaluates; fix:"),
 ])
 def test_push_file_errors_name_the_file_the_field_and_the_fix(tmp_path: Path, content: str, suffix: str,
                                                               expected: str) -> None:

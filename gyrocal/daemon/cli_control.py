@@ -427,12 +427,20 @@ def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
         raise ConfigError(f"{path}: field 'terms' must be a non-empty list of term names, e.g. "
                           "['1', 'gx', 'gy', 'gz']; got " + repr(terms)[:80])
     terms = [t.strip() for t in terms]
+    from gyrocal.daemon.push import MAX_PUSH_COEFF_DPS
     from gyrocal.model.terms import TermSpec  # imported late: it pulls in numpy
+    from gyrocal.protocol.termsets import UNIT_ATOMS, foreign_atoms
 
     try:
         TermSpec.parse(terms)
+        foreign = foreign_atoms(terms)
     except ConfigError as err:
         raise ConfigError(f"{path}: field 'terms': {err}") from err
+    if foreign:
+        # said by the daemon before, without the file or the field, exit 1 (an integrator's check, F7)
+        raise ConfigError(f"{path}: field 'terms': {', '.join(map(repr, foreign))} is not an atom a unit "
+                          f"evaluates; fix: build terms from {', '.join(UNIT_ATOMS)}, exp(-t_on/TAU), "
+                          "sin(F) and cos(F) (docs/protocol.md, section 4)")
     key = next((k for k in ("coefficients", "coefficients_dps") if k in doc), None)
     if key is None:
         raise ConfigError(f"{path}: field 'coefficients' is missing; fix: add coefficients: {{x: [...], "
@@ -459,6 +467,10 @@ def load_coefficient_file(path: Path) -> tuple[list[str], list[list[float]]]:
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise ConfigError(f"{path}: field '{key}.{axis}[{i}]' (term {terms[i]!r}) is {v!r}; fix: "
                                   "a finite number in deg/s per term unit")
+            if abs(v) > MAX_PUSH_COEFF_DPS:
+                raise ConfigError(f"{path}: field '{key}.{axis}[{i}]' (term {terms[i]!r}) is {v!r} deg/s "
+                                  f"per term unit, beyond the {MAX_PUSH_COEFF_DPS:g} a unit takes; fix: "
+                                  "coefficients are in deg/s (a deg/h figure is 3600 times larger)")
             vals.append(float(v))
         out.append(vals)
     return terms, out
