@@ -260,7 +260,7 @@ def test_cli_push_waits_for_the_unit_s_answer_and_exits_1_on_a_nak(short_dir: Pa
     srv.start()
     try:
         f = tmp_path / "set.yaml"
-        f.write_text("terms: ['1']\ncoefficients: [[11.0], [0.0], [0.0]]\n")
+        f.write_text("terms: ['1']\ncoefficients: [[9.0], [0.0], [0.0]]\n")  # a unit NAKs it (the stub)
         assert cli_main(["push", "--file", str(f), "--socket", str(srv.path)]) == 1
         err = capsys.readouterr().err
         assert "v14 not taken: nak" in err and "OUT_OF_RANGE" in err
