@@ -208,6 +208,20 @@ def test_watch_prints_one_json_line_per_change(short_dir: Path, capsys) -> None:
     assert [ln["state"] for ln in lines] == ["A", "B", "C"] and len(asked) == 5
 
 
+def test_watch_does_not_count_the_figures_in_the_reason_as_a_change(short_dir: Path, capsys) -> None:
+    """A cold unit collecting gave a line a second, the reason's seconds counter its only change (an
+    integrator's check, F6); a new version in it (v8 -> v9) is a change."""
+    why = "COLLECTING: a constant alone ... (no new direction learnt for {} s so far)"
+    answers = iter([{"state": "C", "reason": why.format(46)}, {"state": "C", "reason": why.format(47)},
+                    {"state": "C", "reason": why.format(48.5)}, {"state": "M", "reason": "monitoring v8"},
+                    {"state": "M", "reason": "monitoring v9"}])
+
+    with ControlServer(short_dir / "c.sock", lambda req: dict(next(answers))) as srv:
+        assert watch_status(srv.path, 0.01, count=3) == 0
+    lines = [json.loads(ln) for ln in capsys.readouterr().out.splitlines()]
+    assert [ln["reason"] for ln in lines] == [why.format(46), "monitoring v8", "monitoring v9"]
+
+
 def test_watch_reports_a_lost_daemon_once_and_picks_it_up_again(short_dir: Path, capsys) -> None:
     path = short_dir / "c.sock"
     srv = ControlServer(path, lambda req: {"state": "UP"})

@@ -30,6 +30,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import sys
 import textwrap
@@ -90,6 +91,20 @@ WATCH_IGNORES = frozenset({"uptime_s", "liveness", "latency_s", "ring", "samples
                            "push_blind_samples"})
 """Status keys that move with every sample: ``--watch`` prints a line when anything else changes
 (state, reason, pushes, faults, the unit's set), with these as they are then."""
+_REASON_FIGURE = re.compile(r"(?<![\w.])\d+(?:\.\d+)?")
+"""A figure in status's reason ("no new direction learnt for 46 s", "predicted drift left 0.82
+deg/h"), not a version (v8) or a name: ``--watch`` does not count its moves as a change. A cold
+unit collecting gave a line every second, the seconds counter its only change (an integrator's
+check, F6)."""
+
+
+def _watch_key(reply: dict[str, Any]) -> str:
+    """What ``--watch`` compares between polls: the answer without WATCH_IGNORES, and with the
+    reason's figures masked."""
+    kept = {k: v for k, v in reply.items() if k not in WATCH_IGNORES}
+    if isinstance(kept.get("reason"), str):
+        kept["reason"] = _REASON_FIGURE.sub("#", kept["reason"])
+    return json.dumps(kept, sort_keys=True)
 
 
 def watch_status(socket_path: Path, interval_s: float, count: int = 0) -> int:
@@ -108,7 +123,7 @@ def watch_status(socket_path: Path, interval_s: float, count: int = 0) -> int:
             line = json.dumps(reply, sort_keys=True, separators=(",", ":"))
             # a change is a change of anything but the clocks (uptime, sample age, latency), which
             # move at every poll and made every poll a line (an operator's audit)
-            key = json.dumps({k: v for k, v in reply.items() if k not in WATCH_IGNORES}, sort_keys=True)
+            key = _watch_key(reply)
             if key != last:
                 last = key
                 sys.stdout.write(line + "\n")
