@@ -969,6 +969,26 @@ def test_a_read_back_of_the_set_being_pushed_is_not_called_foreign_nor_ack_lost(
     assert any("the set being pushed, before its ack was heard" in r.getMessage() for r in caplog.records)
 
 
+def test_status_says_the_unit_holds_the_acked_set_before_the_next_sample(tmp_path: Path) -> None:
+    """The unit acked v8 and went silent: status said `applied: v7` for 14 s, beside `unit_set`
+    saying it held v8 and a state "monitoring v8" (an integrator's fault campaign, F4). Samples
+    switch to the acked set from the first one after its ack; status says what the unit holds."""
+    from gyrocal.protocol.messages import CoeffAck
+
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session.push is not None)
+    s = h.session
+    v = s.push.write.version
+    acks = [(m, seq) for m, seq in h.outbox if isinstance(m, CoeffAck)]
+    assert acks, h.outbox
+    before = s.status()["applied"]
+    assert before is None or before["version"] != v
+    s.on_message(acks[0][0], h.now, acks[0][1])  # the ack, and no sample after it yet
+    assert s.applied is None or s.applied.version != v  # the samples' set switches at the next one
+    assert s.status()["applied"]["version"] == v
+
+
 def test_a_bias_stage_the_store_could_not_record_comes_first_when_it_returns(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

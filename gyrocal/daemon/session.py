@@ -1782,6 +1782,12 @@ class Session(RecoveryMixin):
         return out
 
     # -- status -------------------------------------------------------------------------------
+    def _held_now(self) -> AppliedSet | None:
+        """The set the unit holds: an acked set from its ack on, though the samples switch to it only
+        from the first one after the ack. Status said `applied: v7` for 14 s after v8 was acked and
+        read back, while the unit fell silent (an integrator's fault campaign, F4)."""
+        return self._switch[0] if self._switch is not None else self.applied
+
     def status(self) -> dict[str, Any]:
         ok, why = self.learner.converged
         return {
@@ -1789,8 +1795,8 @@ class Session(RecoveryMixin):
             "reason": self.reason,
             "unit": {"serial": self.hello.serial, "boot_count": self.hello.boot_count,
                      "fw": self.hello.fw_version, "rate_hz": getattr(self.hello, "rate_hz", 0)},
-            "applied": None if self.applied is None else {
-                "version": self.applied.version, "terms_id": self.applied.terms_id},
+            "applied": None if self._held_now() is None else {
+                "version": self._held_now().version, "terms_id": self._held_now().terms_id},
             "samples": self.samples, "still_samples": self.still_samples,
             "trained_samples": self.learner.samples, "dtemp_inexact_samples": self.inexact_samples,
             "push_blind_samples": self.blind_samples,
