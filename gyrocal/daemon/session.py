@@ -1525,7 +1525,11 @@ class Session(RecoveryMixin):
                 log.info("unit %s: the operator's v%d was not taken (%s): the daemon's own pushes resume",
                          self.hello.serial, version, result.status)
                 self.operator_hold = None
-            self.reason = f"push of v{version} failed ({result.status}); the unit keeps its set"
+            # a NAK is the unit's own word; after a timeout it may hold either set (it held v8 while
+            # this said it kept its set: an integrator's fault campaign, F4)
+            holds = "the unit keeps its set" if result.status == "nak" else \
+                "its read-back says which set it holds"
+            self.reason = f"push of v{version} failed ({result.status}); {holds}"
             transient = result.transient
             names = self._pending[0]
             tid = terms_id(names)
