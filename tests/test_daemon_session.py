@@ -797,6 +797,40 @@ def test_a_second_daemon_on_the_same_store_is_refused_in_one_line(tmp_path: Path
     second.close()
 
 
+def test_a_store_read_only_at_start_is_locked_once_it_can_be_written(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A store read-only at start (chattr +i) could not hold the lock file; once it was writable the
+    lock was never taken, and a second daemon on the same store ran beside the first (an
+    integrator's fault campaign, F5). It is tried again every 5 s."""
+    from gyrocal import pidlock
+    from gyrocal.errors import GyrocalError
+
+    real_take = pidlock.take
+    ro = {"on": True}
+
+    def take(path):  # noqa: ANN001, ANN202
+        if ro["on"]:
+            raise OSError(1, "Operation not permitted")
+        return real_take(path)
+
+    monkeypatch.setattr(pidlock, "take", take)
+    first, second = _engine_with_stub_link(tmp_path), _engine_with_stub_link(tmp_path)
+    first._lock_state_dir()
+    assert first._lock_fh is None
+    first._tick(1.0)
+    assert first._lock_fh is None  # still read-only
+    ro["on"] = False
+    first._tick(2.0)
+    assert first._lock_fh is None  # the next try is 5 s after the last
+    first._tick(7.0)
+    assert first._lock_fh is not None
+    with pytest.raises(GyrocalError, match="another gyrocal daemon"):
+        second._lock_state_dir()
+    first.link = second.link = None
+    first.close()
+    second.close()
+
+
 def test_a_full_state_directory_without_a_lock_file_is_no_exit(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

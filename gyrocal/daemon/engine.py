@@ -126,6 +126,8 @@ class Engine(CommandsMixin):
         self.rate_hz: float | None = None  # measured from the samples' time stamps
         self.last_reload: dict[str, Any] | None = None  # the last SIGHUP's result, for status
         self._lock_fh: Any = None  # <state_dir>/daemon.lock, locked while this daemon runs
+        self._lock_missing = False  # it could not be made at start: tried again (_retry_lock)
+        self._next_lock_try = 0.0
         self._rate_dts: deque[float] = deque(maxlen=self.RATE_WINDOW)
         self._rate_last: tuple[int, float] | None = None  # seq, t [s] of the last sample measured
         self._session_from_hello = False  # the session's start was a HELLO of the unit's (same_boot)
@@ -218,12 +220,15 @@ class Engine(CommandsMixin):
             fh, holder = pidlock.take(path)
         except OSError as err:
             log.warning("state directory %s: no lock file (%s): a second daemon on this store would not "
-                        "be refused", self.cfg.state_dir, err.strerror or err)
+                        "be refused; tried again every %g s", self.cfg.state_dir, err.strerror or err,
+                        self.LOCK_RETRY_S)
+            self._lock_missing = True
             return
         if fh is None:
             raise GyrocalError(f"another gyrocal daemon ({holder}) uses the state directory "
                                f"{self.cfg.state_dir}: one daemon per store; stop it first (systemctl stop "
                                "gyrocal) or give this one its own state_dir (config) or --state-dir")
+        self._lock_missing = False
         try:
             pidlock.write_pid(fh)
         except OSError as err:  # a full disk: the lock holds without the pid (a traceback and exit 1 was
@@ -231,6 +236,34 @@ class Engine(CommandsMixin):
             log.warning("state directory %s: the lock is held but its pid not written (%s)",
                         self.cfg.state_dir, err.strerror or err)
         self._lock_fh = fh
+
+    LOCK_RETRY_S = 5.0
+    """[s] Between tries at the state directory's lock when it could not be made (a read-only store at
+    start): once the store was writable, the lock was never taken, and a second daemon on the same
+    store was not refused (an integrator's fault campaign, F5)."""
+
+    def _retry_lock(self, now: float) -> None:
+        """Take the state directory's lock once it can be made; one line when taken, one ERROR if
+        another daemon holds it by then (it started while this one could not lock)."""
+        if not self._lock_missing or now < self._next_lock_try:
+            return
+        self._next_lock_try = now + self.LOCK_RETRY_S
+        try:
+            fh, holder = pidlock.take(self.cfg.state_dir / "daemon.lock")
+        except OSError:
+            return  # still not writable: said at start
+        self._lock_missing = False
+        if fh is None:
+            log.error("state directory %s: another gyrocal daemon (%s) took it while this one could not "
+                      "lock it: two daemons share the store; stop one (systemctl stop gyrocal)",
+                      self.cfg.state_dir, holder)
+            return
+        try:
+            pidlock.write_pid(fh)
+        except OSError:
+            pass  # the lock holds without the pid, as at start
+        self._lock_fh = fh
+        log.info("state directory %s: locked (daemon.lock) now that it can be written", self.cfg.state_dir)
 
     def _tidy_store(self) -> None:
         """At start (the only writer now): remove temporaries of interrupted writes, close abandoned
@@ -394,6 +427,7 @@ class Engine(CommandsMixin):
             return None
 
     def _tick(self, now: float) -> None:
+        self._retry_lock(now)
         if now >= self._next_errors_check:
             self._next_errors_check = now + self.ERRORS_SAY_S
             self._contain("link error summary", self._say_link_errors)
