@@ -584,20 +584,27 @@ def test_what_the_link_dropped_is_said_once_a_minute(tmp_path: Path,
     assert len([r for r in caplog.records if "it dropped" in r.getMessage()]) == 2
 
 
+def _failing_push_records(h: Harness, err: OSError, on: bool) -> dict[str, bool]:
+    """Make the store's push-result writes raise ``err`` while the returned switch's "on" is True (a
+    full disk, a read-only store); every other write goes through."""
+    real = h.store.update_push
+    switch = {"on": on}
+
+    def update_push(serial, version, push):  # noqa: ANN001, ANN202
+        if switch["on"]:
+            raise err
+        return real(serial, version, push)
+
+    h.store.update_push = update_push  # type: ignore[method-assign]
+    return switch
+
+
 def test_a_push_result_the_store_could_not_take_is_not_called_an_ack_lost(tmp_path: Path) -> None:
     """An operator's soak with a full store: v44 was acked, its result could not be written (kept in
     memory), and the read-back then logged "holds v44 although its push ended 'pending': recorded as
     applied (ack lost)", which status kept saying after the store was freed."""
     h = Harness.make(tmp_path)
-    real = h.store.update_push
-    full = {"on": True}
-
-    def update_push(serial, version, push):  # noqa: ANN001, ANN202
-        if full["on"]:
-            raise OSError(28, "No space left on device")
-        return real(serial, version, push)
-
-    h.store.update_push = update_push  # type: ignore[method-assign]
+    full = _failing_push_records(h, OSError(28, "No space left on device"), on=True)
     h.switch_on()
     h.run(90, until=_pushed)
     h.run(2)
@@ -619,15 +626,7 @@ def test_a_read_back_the_store_could_not_settle_is_settled_when_it_returns(tmp_p
     store after it was writable again, and the next start closed the acked set as 'abandoned'. It is
     settled every STORE_RETRY_S until the store takes it, and then agrees."""
     h = Harness.make(tmp_path)
-    real = h.store.update_push
-    ro = {"on": False}
-
-    def update_push(serial, version, push):  # noqa: ANN001, ANN202
-        if ro["on"]:
-            raise OSError(30, "Read-only file system")
-        return real(serial, version, push)
-
-    h.store.update_push = update_push  # type: ignore[method-assign]
+    ro = _failing_push_records(h, OSError(30, "Read-only file system"), on=False)
     h.switch_on()
     h.run(90, until=lambda h: bool(h.session and h.session.push))
     ro["on"] = True  # from the push on
@@ -1441,11 +1440,9 @@ def test_a_second_bias_step_soon_after_the_first_is_taken_out_too(tmp_path: Path
         h.run(10)
 
 
-def test_a_bias_step_before_any_push_of_a_warm_switch_on_is_alarmed(tmp_path: Path) -> None:
-    """A warm switch-on whose held set is right (the same bias as at the last switch-on): no push was
-    due, so nothing watched the drift, and a 100 deg/h step of the x bias 10 s in was averaged into
-    the sets that followed, x 61, 30, then 15 deg/h off with the alarm off (an outside re-check on a
-    road drive: 51-55 deg/h). The held set is watched from 8 still blocks on."""
+def _warm_at_rest_held_right(tmp_path: Path) -> tuple[Harness, np.ndarray]:
+    """A unit calibrated on its tumble, switched on again at rest (z up) with the same bias as then:
+    the held set is right and no push is due. Returns the harness and that bias [deg/s] (3,)."""
     from gyrocal.sim.schedule import still
 
     h = Harness.make(tmp_path)
@@ -1455,7 +1452,16 @@ def test_a_bias_step_before_any_push_of_a_warm_switch_on_is_alarmed(tmp_path: Pa
     bias = h.unit.stream.bias_dps.copy()
     h.unit.schedule = still((0.0, 0.0, 1.0))
     h.switch_on()
-    h.unit.stream.bias_dps = bias.copy()  # the held set's bias is right
+    h.unit.stream.bias_dps = bias.copy()
+    return h, bias
+
+
+def test_a_bias_step_before_any_push_of_a_warm_switch_on_is_alarmed(tmp_path: Path) -> None:
+    """A warm switch-on whose held set is right (the same bias as at the last switch-on): no push was
+    due, so nothing watched the drift, and a 100 deg/h step of the x bias 10 s in was averaged into
+    the sets that followed, x 61, 30, then 15 deg/h off with the alarm off (an outside re-check on a
+    road drive: 51-55 deg/h). The held set is watched from 8 still blocks on."""
+    h, bias = _warm_at_rest_held_right(tmp_path)
     h.run(10)
     s = h.session
     assert s is not None and not s.last_push, s.last_push
@@ -1472,16 +1478,7 @@ def test_a_bias_step_1_s_into_a_warm_switch_on_is_placed_and_taken_out(tmp_path:
     still blocks asked before a step, none was placed: the bias stages averaged the first second in,
     and x was left 5 deg/h off 20 s after, 2.4-2.6 for good, with the alarm off (in process). One
     still block before a step is enough to place it now."""
-    from gyrocal.sim.schedule import still
-
-    h = Harness.make(tmp_path)
-    h.switch_on()
-    h.run(90, until=_pushed)
-    h.run(2)
-    bias = h.unit.stream.bias_dps.copy()
-    h.unit.schedule = still((0.0, 0.0, 1.0))
-    h.switch_on()
-    h.unit.stream.bias_dps = bias.copy()
+    h, bias = _warm_at_rest_held_right(tmp_path)
     h.run(1.0)
     h.unit.stream.bias_dps = bias + np.array([100.0, 0.0, 0.0]) / 3600.0
     h.run(12)
