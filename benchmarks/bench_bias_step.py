@@ -47,6 +47,15 @@ from tests.test_still_rule import _tilted  # noqa: E402
 DPH = 3600.0
 
 
+# Every run's store lives under one directory, removed when the script ends (each run left its own in /tmp)
+_SCRATCH = tempfile.TemporaryDirectory(prefix="bench-step-")
+
+
+def _scratch() -> Path:
+    """A fresh directory for one run's store, under the script's scratch directory."""
+    return Path(tempfile.mkdtemp(dir=_SCRATCH.name))
+
+
 def _acked(h: Harness) -> bool:
     return h.session is not None and h.session.last_push.get("status") == "acked"
 
@@ -54,7 +63,7 @@ def _acked(h: Harness) -> bool:
 def step_run(seed: int, at_s: float, step_dph: float) -> dict[str, Any]:
     """A cold tumble whose x bias steps by ``step_dph`` [deg/h] ``at_s`` [s] after switch-on."""
     t0 = time.process_time()
-    h = Harness.make(Path(tempfile.mkdtemp(prefix="bench-step-")), seed=seed)
+    h = Harness.make(_scratch(), seed=seed)
     h.switch_on()
     h.run(at_s)
     before = h.session.last_push.get("version")
@@ -79,7 +88,7 @@ def step_run(seed: int, at_s: float, step_dph: float) -> dict[str, Any]:
 def warm_step_run(seed: int, at_s: float, step_dph: float, held_right: bool) -> dict[str, Any]:
     """A warm switch-on at rest whose x bias steps by ``step_dph`` [deg/h] ``at_s`` [s] after it."""
     t0 = time.process_time()
-    h = Harness.make(Path(tempfile.mkdtemp(prefix="bench-step-")), seed=seed)
+    h = Harness.make(_scratch(), seed=seed)
     h.switch_on()
     h.run(90, until=_acked)
     h.run(2)
@@ -102,7 +111,7 @@ def warm_step_run(seed: int, at_s: float, step_dph: float, held_right: bool) -> 
 
 def grade_null(grade: str, seed: int) -> dict[str, Any]:
     """A cold tumble of 400 s and a warm switch-on of 200 s of one grade, no step made."""
-    r = GradeRun.make(Path(tempfile.mkdtemp(prefix="bench-step-")), grade=grade, rate_hz=200.0, seed=seed)
+    r = GradeRun.make(_scratch(), grade=grade, rate_hz=200.0, seed=seed)
     r.switch_on()
     r.run(400.0)
     cold = r.session.bias_steps
@@ -113,7 +122,7 @@ def grade_null(grade: str, seed: int) -> dict[str, Any]:
 
 def drive_null(kind: str, seed: int) -> dict[str, Any]:
     """The demo unit calibrated on its tumble, then switched on for a 150 s drive of slow turns."""
-    h = Harness.make(Path(tempfile.mkdtemp(prefix="bench-step-")), seed=seed)
+    h = Harness.make(_scratch(), seed=seed)
     h.switch_on()
     h.run(90, until=_acked)
     h.run(3)

@@ -34,6 +34,14 @@ from gyrocal.daemon.session import Session, same_boot  # noqa: E402
 from gyrocal.daemon.stillness import StillDetector  # noqa: E402
 from tests.daemon_harness import RATE_HZ, Harness  # noqa: E402
 
+# Every run's store lives under one directory, removed when the script ends (each run left its own in /tmp)
+_SCRATCH = tempfile.TemporaryDirectory(prefix="bench-resume-")
+
+
+def _scratch() -> Path:
+    """A fresh directory for one run's store, under the script's scratch directory."""
+    return Path(tempfile.mkdtemp(dir=_SCRATCH.name))
+
 
 def _acked(h: Harness) -> bool:
     return h.session is not None and h.session.last_push.get("status") == "acked"
@@ -41,7 +49,7 @@ def _acked(h: Harness) -> bool:
 
 def run_case(seed: int, case: str, restarts: int, every_s: float, resume: bool) -> dict[str, Any]:
     """One unit, calibrated into ``case``, then restarted within its switch-on; see module doc."""
-    h = Harness.make(Path(tempfile.mkdtemp(prefix="bench-resume-")), seed=seed)
+    h = Harness.make(_scratch(), seed=seed)
     h.switch_on()
     h.run(90, until=_acked)
     if case == "bias":
