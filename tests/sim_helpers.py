@@ -14,6 +14,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 SIM_CMD = [sys.executable, "-m", "gyrocal.cli", "sim"]
 
 
@@ -94,3 +96,9 @@ class SimProcess:
 
 def read_status(path: Path) -> dict[str, Any]:
     return json.loads(path.read_text()) if path.exists() else {}
+
+
+EXTENDED = bool(os.environ.get("GYROCAL_EXTENDED"))
+"""Cases that repeat another's coverage on a second transport, node or set-up run only with
+GYROCAL_EXTENDED=1, so the suite stays within its time budget (about 10 minutes on 2 cores)."""
+EXTENDED_ONLY = pytest.mark.skipif(not EXTENDED, reason="repeats covered ground; run with GYROCAL_EXTENDED=1")

@@ -25,6 +25,7 @@ import yaml
 from gyrocal.daemon.control import request
 from gyrocal.daemon.virtual import free_udp_port
 from gyrocal.sim.schedule import tumble
+from tests.sim_helpers import EXTENDED_ONLY
 
 pytestmark = pytest.mark.slow
 PY = [sys.executable, "-m", "gyrocal.cli"]
@@ -199,6 +200,7 @@ def _can_push_checked(tmp_path: Path, *sim_args: str, **sections: Any) -> dict[s
             stop(sim)
 
 
+@EXTENDED_ONLY  # the two tests below push over the same bus, and test_indep_unit.py's CAN unit too
 def test_daemon_and_unit_over_can_udp_multicast_push_and_cut_drift_tenfold(tmp_path: Path) -> None:
     _can_push_checked(tmp_path)
 

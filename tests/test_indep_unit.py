@@ -20,15 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from tests.sim_helpers import MULTICAST_GROUP, free_udp_port, multicast_works, wait_for
+from tests.sim_helpers import EXTENDED_ONLY, MULTICAST_GROUP, free_udp_port, multicast_works, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
 WAIT_S = 120.0  # generous bound on the first push (a loaded CI machine); never asserted as a time
-EXTENDED = bool(os.environ.get("GYROCAL_EXTENDED"))
-"""Cases that repeat another's coverage on a second transport or node run only with GYROCAL_EXTENDED=1,
-so the suite stays within its time budget."""
-EXTENDED_ONLY = pytest.mark.skipif(not EXTENDED, reason="repeats covered ground; run with GYROCAL_EXTENDED=1")
 
 
 class Proc:
