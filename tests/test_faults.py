@@ -324,3 +324,38 @@ def test_a_unit_measuring_its_own_boot_bias_holds_the_stored_set_not_a_foreign_o
     cut = agree(report(0.002), own=True)
     assert cut["agree"] and cut["store_status"] == "applied_ack_lost" and cut["own_bias_dph"] == [7.2] * 3
     assert store.get(9, rec.version).push["status"] == "applied_ack_lost"
+
+
+def test_a_write_into_a_link_the_session_said_is_down_is_not_warned_again(caplog: Any) -> None:
+    """The session's send says False for a link it has already logged as down (one WARNING per
+    outage): the push's 'the write could not be sent' is then INFO. One cable pull mid-push gave this
+    fact twice at WARNING (an integrator's fault campaign, F3). A send that raises, which nobody has
+    said, stays a WARNING."""
+    import logging
+
+    from gyrocal.daemon.push import PushTransaction
+    from gyrocal.protocol.messages import CoeffWrite
+    from gyrocal.protocol.termsets import terms_id
+
+    terms = ["1", "gx", "gy", "gz"]
+    write = CoeffWrite(8, terms_id(terms), np.full((3, 4), 0.001))
+    sends: list[Any] = []
+
+    def down(msg: Any) -> bool:
+        sends.append(msg)
+        return len(sends) == 1  # the first write left; the cable was pulled before its ack
+
+    def raising(msg: Any) -> None:
+        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
+
+    for send, warned in ((down, 0), (raising, 3)):
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="gyrocal.push"):
+            t, p = 0.0, PushTransaction(write, send, 0.0)
+            while not p.finished and t < 60.0:
+                t += 0.1
+                p.tick(t)
+        said = [r for r in caplog.records if "could not be sent" in r.getMessage()]
+        assert p.result is not None and p.result.status in ("timeout", "link_down")
+        assert sum(r.levelno >= logging.WARNING for r in said) == warned, [r.getMessage() for r in said]
+        assert len(said) == (2 if send is down else 3)

@@ -174,6 +174,7 @@ class PushTransaction:
         self.acked_crc: int | None = None
         self.backoff_s, self.backoff_max_s = backoff_s, backoff_max_s
         self.send_failures = 0
+        self._outage_said = False  # the last send failed on a link the session already said is down
         self.nak_reason: int | None = None
         self._rng = random.Random(write.version)  # jitter, seeded: the same push retries the same way
         self._deadline = 0.0
@@ -190,7 +191,9 @@ class PushTransaction:
             # read as success, a dead link's push waited out its acks and ended 'timeout' where
             # protocol.md says 'link_down' (an operator's audit)
             if self._send(msg) is False:
+                self._outage_said = True
                 raise OSError("the link takes no sends")
+            self._outage_said = False
         except Exception as err:  # LinkError / OSError: the unit is unplugged or the write failed
             self.send_failures += 1
             reason = f"{type(msg).__name__} not sent: {err}"
@@ -207,8 +210,12 @@ class PushTransaction:
         self._deadline = now + self.timeout_s
         log.info("push v%d: COEFF_WRITE attempt %d/%d", self.write.version, self.attempts, self.retries)
         if not self._safe_send(self.write):
-            # nothing left the host: no ack to wait for; back off, then try again (or give up)
-            self._retry_or_fail(now, "timeout", f"attempt {self.attempts}: the write could not be sent")
+            # nothing left the host: no ack to wait for; back off, then try again (or give up). A link the
+            # session already said is down (its send's False, one WARNING per outage) is not said again:
+            # one cable pull mid-push gave 5 WARNINGs, two of them this one fact (an integrator's fault
+            # campaign, F3)
+            self._retry_or_fail(now, "timeout", f"attempt {self.attempts}: the write could not be sent",
+                                level=logging.INFO if self._outage_said else None)
 
     def _backoff(self) -> float:
         """Delay before the next write [s]: doubling per attempt, capped, +-25 % jitter."""
@@ -221,9 +228,10 @@ class PushTransaction:
         self._deadline = now + self.timeout_s
         self._safe_send(CoeffRead())
 
-    def _retry_or_fail(self, now: float, status: str, reason: str, *, final: bool = False) -> None:
+    def _retry_or_fail(self, now: float, status: str, reason: str, *, final: bool = False,
+                       level: int | None = None) -> None:
         self.reasons.append(reason)
-        log.log(self._warn, "push v%d: %s", self.write.version, reason)
+        log.log(self._warn if level is None else level, "push v%d: %s", self.write.version, reason)
         if self.attempts < self.retries and not final:
             self.phase = PushPhase.BACKOFF
             self._deadline = now + self._backoff()
