@@ -1560,3 +1560,22 @@ def test_a_bias_step_just_before_a_cold_units_constant_is_taken_out(tmp_path: Pa
         left = h.unit.status()["drift_rms_compensated_dps"]
         assert left["x"] * 3600 < 2.0 and not s.alarm, (left, s.alarm, s.reason)
         h.run(10)
+
+
+def test_the_first_reopen_failure_after_a_loss_is_its_detail_not_a_second_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """One cable pull gave "link link_lost" and "waiting for the unit: ... cannot be opened" as two
+    WARNINGs (an integrator's fault campaign, F3): the loss is said once; its cause at INFO, and a
+    cause that changes later (a second daemon took the port) is a WARNING again."""
+    eng = _engine_with_stub_link(tmp_path)
+    eng.link.stats = lambda: {"connected": False, "target": "/dev/x"}
+    gone = "serial port '/dev/x' cannot be opened ([Errno 2] No such file or directory); check ..."
+    held = "serial port '/dev/x' cannot be opened (Could not exclusively lock port /dev/x); another process"
+    with caplog.at_level(logging.INFO, logger="gyrocal.engine"):
+        eng._on_link_event("link_lost", "/dev/x: device disconnected", 0.0)
+        for k in range(3):
+            eng._on_link_event("reconnecting", f"{gone}; next try in {2.0 ** k:.1f} s", 0.1 + k)
+        eng._on_link_event("reconnecting", f"{held}; next try in 1.0 s", 10.0)
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warned) == 2 and "link_lost" in warned[0] and "exclusively lock" in warned[1], warned
+    assert sum("No such file" in r.getMessage() and r.levelno == logging.INFO for r in caplog.records) == 1

@@ -595,8 +595,12 @@ class Engine(CommandsMixin):
             # a cause that changes is said too: after a replug, a second daemon held the port, and the
             # service's last line was still the unplug's "No such file" (a serial integrator's re-check);
             # while the link flaps, the minute's summary says it (20 WARNINGs a minute: an operator's audit)
-            log.log(logging.WARNING if first and not self._flapping(now) else logging.DEBUG,
-                    "waiting for the unit: %s", detail)
+            # the first round after a loss the engine has just said (WARNING) is its detail, at INFO:
+            # one cable pull gave "link_lost" and "cannot be opened" as two WARNINGs (an integrator's
+            # fault campaign, F3); a cause that changes later is a new fact
+            level = logging.DEBUG if not first or self._flapping(now) else \
+                logging.INFO if self._link_state == "link_lost" else logging.WARNING
+            log.log(level, "waiting for the unit: %s", detail)
             self._link_state, self._reconnect_why = name, why
             self._reconnect_detail = detail.split("; ")[0]  # the cause, without the fix the log gives
             return
