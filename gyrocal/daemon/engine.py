@@ -228,6 +228,10 @@ class Engine(CommandsMixin):
             raise GyrocalError(f"another gyrocal daemon ({holder}) uses the state directory "
                                f"{self.cfg.state_dir}: one daemon per store; stop it first (systemctl stop "
                                "gyrocal) or give this one its own state_dir (config) or --state-dir")
+        self._hold_lock(fh)
+
+    def _hold_lock(self, fh: Any) -> None:
+        """Keep the lock just taken (``fh``) for the daemon's life, with its pid written in it."""
         self._lock_missing = False
         try:
             pidlock.write_pid(fh)
@@ -252,17 +256,13 @@ class Engine(CommandsMixin):
             fh, holder = pidlock.take(self.cfg.state_dir / "daemon.lock")
         except OSError:
             return  # still not writable: said at start
-        self._lock_missing = False
         if fh is None:
+            self._lock_missing = False
             log.error("state directory %s: another gyrocal daemon (%s) took it while this one could not "
                       "lock it: two daemons share the store; stop one (systemctl stop gyrocal)",
                       self.cfg.state_dir, holder)
             return
-        try:
-            pidlock.write_pid(fh)
-        except OSError:
-            pass  # the lock holds without the pid, as at start
-        self._lock_fh = fh
+        self._hold_lock(fh)
         log.info("state directory %s: locked (daemon.lock) now that it can be written", self.cfg.state_dir)
 
     def _tidy_store(self) -> None:
