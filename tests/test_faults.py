@@ -359,3 +359,30 @@ def test_a_write_into_a_link_the_session_said_is_down_is_not_warned_again(caplog
         assert p.result is not None and p.result.status in ("timeout", "link_down")
         assert sum(r.levelno >= logging.WARNING for r in said) == warned, [r.getMessage() for r in said]
         assert len(said) == (2 if send is down else 3)
+
+
+def test_a_link_said_lost_mid_push_is_not_said_again_by_the_push_or_the_session(
+        tmp_path: Path, caplog: Any) -> None:
+    """After the engine's one WARNING for a lost link (session.link_lost), the push's missing ack and
+    the session's failed sends are its consequences, at INFO; the push still ends in a record. One
+    cable pull mid-push gave the loss, 'no ack within 1.0 s' and 'CoeffWrite not sent' as three
+    WARNINGs (an integrator's fault campaign, F3)."""
+    import logging
+
+    h = Harness.make(tmp_path, faults=Faults(drop_acks=100))
+    h.switch_on()
+    h.run(90, until=lambda h: h.session is not None and h.session.state is State.PUSHING)
+    s = h.session
+
+    def unplugged(msg: Any) -> None:
+        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
+
+    with caplog.at_level(logging.INFO):
+        s.link_lost()
+        s.send = unplugged
+        h.run(30, until=_pushed)
+    said = [(r.levelno, r.getMessage()) for r in caplog.records]
+    assert any("no ack within" in m for _, m in said) and any("could not be sent" in m for _, m in said), said
+    assert not [m for lv, m in said if lv >= logging.WARNING and ("no ack" in m or "not sent" in m)], said
+    assert s.last_push["status"] in ("link_down", "timeout")
+    assert h.store.get(4242, s.last_push["version"]).push["status"] == s.last_push["status"]

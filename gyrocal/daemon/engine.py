@@ -619,6 +619,8 @@ class Engine(CommandsMixin):
                             self.FLAP_WINDOW_S)
         log.log(level, "link %s %s", name, detail)
         self._link_state = name
+        if name == "link_lost" and self.session is not None:
+            self.session.link_lost()
         if name == "link_up":
             self._link_up_at = now
             self._ups_since_said += 1

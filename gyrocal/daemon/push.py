@@ -175,6 +175,7 @@ class PushTransaction:
         self.backoff_s, self.backoff_max_s = backoff_s, backoff_max_s
         self.send_failures = 0
         self._outage_said = False  # the last send failed on a link the session already said is down
+        self.link_down = False  # the engine has said the link is lost (session.link_lost): acks cannot come
         self.nak_reason: int | None = None
         self._rng = random.Random(write.version)  # jitter, seeded: the same push retries the same way
         self._deadline = 0.0
@@ -297,7 +298,9 @@ class PushTransaction:
         if self.phase is PushPhase.BACKOFF:
             self._attempt(now)
         elif self.phase is PushPhase.WAIT_ACK:
-            self._retry_or_fail(now, "timeout", f"no ack within {self.timeout_s:.1f} s")
+            # with the link said lost, the missing ack is that loss's consequence, not a second fault
+            self._retry_or_fail(now, "timeout", f"no ack within {self.timeout_s:.1f} s",
+                                level=logging.INFO if self.link_down else None)
         elif self.phase is PushPhase.WAIT_READBACK:
             if self.read_attempts < self.retries:
                 self._read(now)

@@ -102,9 +102,20 @@ class RecoveryMixin:
             self._store_push(version, dict(self.last_push), now)
         self._retry = None
 
+    def link_lost(self) -> None:
+        """The engine has said the link is lost (its WARNING): what the session sends meanwhile fails
+        for that reason, and a push's missing ack is its consequence, neither said again at WARNING.
+        One cable pull mid-push gave the loss, 'no ack within 1.0 s' and 'CoeffWrite not sent' as three
+        WARNINGs (an integrator's fault campaign, F3)."""
+        self._link_warned = True
+        if self.push is not None:
+            self.push.link_down = True
+
     def relink(self, now: float) -> None:
         """The link came back: the unit may have changed its set meanwhile; read it again."""
         self._read_asks = 0
+        if self.push is not None:
+            self.push.link_down = False
         if self.push is None:
             self._forget_set()
         self.request_read(now)
