@@ -1,6 +1,6 @@
 """The gain of the bias state on line: drift left after the push, with and without it (issue 12).
 
-    .venv/bin/python benchmarks/bench_bias_state.py [--json] [--quick] [--seeds N] [--session S]
+    .venv/bin/python benchmarks/bench_bias_state.py [--json] [--quick] [--seeds N] [--session S] [--reml-walk]
 
 A virtual unit (the truth model: seed 000 gravity drift, switch-on bias, white noise, plus a bias
 random walk and flicker) is calibrated on line over one tumble session, with the estimator fed the
@@ -19,7 +19,9 @@ samples: the other way to follow a wander, seed 003), ``kf_spec`` (method kf, in
 Allan fit (``fit_noise_terms``) of a separate 4 h still recording of the same unit),
 ``kf_analyze`` (method kf, the bias blocks that ``gyrocal analyze`` itself writes from that
 recording, ``extend.bias_spec``; ``--no-analyze`` leaves it out) and ``kf_true`` (method kf, the
-truth's intensities), all with ``horizon_s`` = the window after the push. Cases: ``walk+flicker``
+truth's intensities), all with ``horizon_s`` = the window after the push; with ``--reml-walk`` also
+``kf_analyze_reml`` (the analyze spec with the walk test's REML intensity in place of the joint Allan
+fit's K: docs/analysis.md, "The walk's intensity in the finding"). Cases: ``walk+flicker``
 (the issue's unit), ``flicker`` only, and ``none`` (a control: the bias state must cost nothing).
 """
 
@@ -84,17 +86,31 @@ def spec_from_still_log(c: dict, seconds: float) -> tuple[dict, dict]:
     return spec, shown
 
 
-def spec_from_analyze(c: dict, seed: int) -> tuple[dict, dict]:
+def spec_from_analyze(c: dict, seed: int) -> tuple[dict, dict, list[dict]]:
     """What ``gyrocal analyze`` writes for the daemon from the same still recording: its findings'
-    bias blocks (``extend.bias_spec``, the part of OUT.terms.yaml that ``BiasModel.from_spec`` reads)
-    and the findings named, so the on-line gain is measured through the real analysis path."""
+    bias blocks (``extend.bias_spec``, the part of OUT.terms.yaml that ``BiasModel.from_spec`` reads),
+    the causes named with their axes, and the findings themselves, so the on-line gain is measured
+    through the real analysis path."""
     from gyrocal.analysis.engine import analyze
     from gyrocal.analysis.extend import bias_spec
     from gyrocal.logformat import LogData
 
     cols = {k: c[k] for k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")}
     r = analyze(LogData(cols, {}, [], "still recording"), seed=seed).result
-    return bias_spec(r["findings"], r["allan_terms"]), {f["cause"]: f["axes"] for f in r["findings"]}
+    return (bias_spec(r["findings"], r["allan_terms"]), {f["cause"]: f["axes"] for f in r["findings"]},
+            r["findings"])
+
+
+def reml_walk_spec(analyzed: dict, findings: list[dict]) -> dict | None:
+    """The analyze spec with its walk taken from the walk test's REML intensity (the finding's
+    ``dps_per_sqrt_s``) in place of the joint Allan fit's K: the alternative docs/analysis.md left
+    unmeasured ("The walk's intensity in the finding"). None when analyze named no walk."""
+    rw = next((f for f in findings if f["cause"] == "random_walk"), None)
+    if rw is None or "random_walk" not in analyzed:
+        return None
+    out = json.loads(json.dumps(analyzed))
+    out["random_walk"]["dps_per_sqrt_s"] = {a: float(v) for a, v in rw["params"]["dps_per_sqrt_s"].items()}
+    return out
 
 
 def true_bias(model: TruthModel) -> BiasModel:
@@ -110,7 +126,7 @@ def _terms(cols: dict) -> np.ndarray:
 
 
 def run_one(model: TruthModel, seed: int, session_s: float, after_s: float, spec: dict,
-            analyzed: dict | None = None) -> dict:
+            analyzed: dict | None = None, reml: dict | None = None) -> dict:
     """One session per method on the same stream; the drift left after each method's push [deg/h]."""
     ests = {
         "rls": make_estimator("rls"),
@@ -121,6 +137,10 @@ def run_one(model: TruthModel, seed: int, session_s: float, after_s: float, spec
     if analyzed is not None:
         ests["kf_analyze"] = make_estimator("kf", bias=BiasModel.from_spec(analyzed, "analyze spec"),
                                             dt_s=1 / RATE_HZ, horizon_s=after_s)
+    if reml is not None:
+        ests["kf_analyze_reml"] = make_estimator(
+            "kf", bias=BiasModel.from_spec(reml, "analyze spec, REML walk"), dt_s=1 / RATE_HZ,
+            horizon_s=after_s)
     ests |= {
         "kf_true": make_estimator("kf", bias=true_bias(model), dt_s=1 / RATE_HZ, horizon_s=after_s),
     }
@@ -278,6 +298,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="length of the still recording the spec is read from [s] (default 14400)")
     ap.add_argument("--no-analyze", action="store_true",
                     help="leave out kf_analyze (the spec `gyrocal analyze` writes from the still log)")
+    ap.add_argument("--reml-walk", action="store_true",
+                    help="add kf_analyze_reml: the analyze spec with the walk test's REML intensity in "
+                    "place of the joint Allan fit's K")
     ap.add_argument("--daemon", action="store_true",
                     help="end to end: the daemon with rls and with kf (the spec analyze writes; with "
                     "--no-analyze the benchmark's own Allan fit) on a walk+flicker virtual unit")
@@ -315,11 +338,14 @@ def main(argv: list[str] | None = None) -> int:
         model = unit(case)
         rec = still_recording(model, 0, args.still_log)  # one recording for both specs
         spec, shown = spec_from_still_log(rec, args.still_log)
-        analyzed, named = (None, None) if args.no_analyze else spec_from_analyze(rec, 0)
-        runs = [run_one(model, s, args.session, args.after, spec, analyzed) for s in range(args.seeds)]
+        analyzed, named, findings = (None, None, []) if args.no_analyze else spec_from_analyze(rec, 0)
+        reml = reml_walk_spec(analyzed, findings) if args.reml_walk and analyzed is not None else None
+        runs = [run_one(model, s, args.session, args.after, spec, analyzed, reml) for s in range(args.seeds)]
         summary: dict = {"truth": CASES[case], "allan_read_off": shown, "spec": spec, "methods": {}}
         if analyzed is not None:
             summary |= {"analyze_findings": named, "analyze_spec": analyzed}
+        if reml is not None:
+            summary["analyze_spec_reml_walk"] = reml
         for name in runs[0]:
             at = np.array([r[name]["at_push_dph"] for r in runs])
             af = np.array([r[name]["after_dph"] for r in runs])
