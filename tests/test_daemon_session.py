@@ -1579,3 +1579,31 @@ def test_the_first_reopen_failure_after_a_loss_is_its_detail_not_a_second_warnin
     warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warned) == 2 and "link_lost" in warned[0] and "exclusively lock" in warned[1], warned
     assert sum("No such file" in r.getMessage() and r.levelno == logging.INFO for r in caplog.records) == 1
+
+
+def test_an_alarm_back_on_the_bias_stage_of_a_restart_does_not_restart_learning_again(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A unit whose gravity terms moved (10 deg/h per term) since its held set, switched on warm on a
+    tumble: the drift alarm is right at each new pose, and each alarm restarted learning from the held
+    set, whose bias stage was pushed and alarmed again at the next poses: 12-19 pushes in 120-300 s and
+    14-65 deg/h left on an integrator's independent unit (rc33 W0/W1/W7). A bias does not explain an
+    alarm that is back on the bias stage a restart pushed: learning goes on from the samples since
+    (a second bias step is still found by the step check)."""
+    from dataclasses import replace
+
+    h = Harness.make(tmp_path, seed=1)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
+    h.run(3)
+    c = h.unit.truth.coeffs_dps.copy()
+    c[:, 1:] += np.random.default_rng(101).normal(0, 10 / 3600, size=c[:, 1:].shape)
+    h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
+    with caplog.at_level(logging.INFO, logger="gyrocal.session"):
+        h.switch_on()
+        h.run(120)
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("learning starts again" in m for m in said) == 1, [m for m in said if "learning" in m]
+    assert any("the drift alarm is back on" in m and "no step of the bias explains it" in m for m in said)
+    left = h.unit.status()["drift_rms_compensated_dps"]
+    assert max(left.values()) * 3600 < 1.0, left  # a full set came: the terms are learnt again
+    assert h.session.last_push.get("status") == "acked" and not h.session.alarm

@@ -286,6 +286,8 @@ class Session(RecoveryMixin):
         self._relearned_at = float("-inf")  # unit time [s] learning last started again on an alarm
         self._relearned_from: int | None = None  # the version the unit held then
         self._relearning = False  # ... and its bias stage is due (_relearn_after_alarm)
+        self._relearn_stages: set[int] = set()  # versions of the bias stages pushed after such a restart
+        self._alarm_kept: set[int] = set()  # ... whose alarm came back and was said once
         # bias steps found in the data being learnt from (_step_found): status and each record say them
         self.bias_steps: list[dict[str, Any]] = []
         self._held_said: list[str] = []  # the terms held at 0 that the log has named (HOLD_STALL_S)
@@ -1154,11 +1156,13 @@ class Session(RecoveryMixin):
             return
         self._bias_partial = self._keep_held is not None
         self._bias_pushed = not self._bias_partial
-        self._relearning = False
+        after_alarm, self._relearning = self._relearning, False
         if self._bias_partial and why != self._bias_said:
             self._bias_said = why
             log.info("unit %s: %s", self.hello.serial, why)
         self._validate(now, self.monitor, stage="bias")
+        if after_alarm and self.push is not None:
+            self._relearn_stages.add(self.push.write.version)
 
     def _bias_unsent(self, stage: str) -> None:
         """A bias stage the store could not record was not pushed: it is due again when the store
@@ -1752,6 +1756,22 @@ class Session(RecoveryMixin):
         of false alarms could cause."""
         held = self._applied_coeffs()
         if held is None or _constant_only(self.names, held) or self.applied is None:
+            return
+        if self._relearned_from is not None and self.applied.version != self._relearned_from \
+                and self.applied.version in self._relearn_stages and not self._relearning:
+            # the alarm is back on the bias stage the last restart pushed: a bias does not explain it (the
+            # held terms are off at the poses since), and what does is learnt from the samples since that
+            # restart, which a new restart would throw away. A unit whose gravity terms had moved 10-30
+            # deg/h since its held set got a bias stage after each alarm, 12-19 pushes in 120-300 s, and
+            # was left 14-65 deg/h off (an integrator's fault campaign, rc33 W0/W1/W7). A second step of
+            # the bias is still placed: the step check looks at those samples (it restarts learning)
+            if self._step_found(every_block=True):
+                return
+            if self.applied.version not in self._alarm_kept:
+                self._alarm_kept.add(self.applied.version)
+                log.info("unit %s: the drift alarm is back on v%d, the bias stage of the last restart, and "
+                         "no step of the bias explains it: its terms are off at these poses; learning goes "
+                         "on towards a full set", self.hello.serial, self.applied.version)
             return
         wait = self.RELEARN_MIN_S if self.applied.version == self._relearned_from else self.RELEARN_NEWER_S
         if self._t_last - self._relearned_at < wait:
