@@ -230,7 +230,8 @@ def test_a_reload_says_what_waits_for_a_restart_or_a_switch_on(tmp_path: Path, c
     said = " | ".join(r.getMessage() for r in caplog.records)
     assert "state_dir changed" in said and "next restart" in said
     assert "link.url '/dev/x' -> '/dev/y'" in said  # named, as every other field (it said "link settings")
-    assert "still settings changed" in said and "site.latitude_deg changed to 48.1" in said
+    assert "still.k_std 4.0 -> 5" in said and "site.latitude_deg default -> 48.1" in said, said
+    assert "next switch-on" in said
     assert eng.cfg.site["latitude_deg"] == 48.1 and eng.last_reload["ok"]
 
 

@@ -176,20 +176,18 @@ class CommandsMixin:
                                 ", ".join(_changed_fields(self.cfg, new, ("link",))))
                 for top in ("state_dir", "control_socket", "watchdog"):  # read once, at start
                     if getattr(new, top) != getattr(self.cfg, top):
-                        log.warning("SIGHUP: %s changed to %s; it takes effect at the next restart", top,
-                                    getattr(new, top))
-                if new.still != self.cfg.still:  # the still detector is made at a session's start
-                    log.info("SIGHUP: still settings changed; they take effect at the next switch-on "
-                             "(or `gyrocal recalibrate`)")
-                if new.site != self.cfg.site:  # a session reads it when it starts
-                    log.info("SIGHUP: site.latitude_deg changed to %s; it takes effect at the next "
-                             "switch-on (or `gyrocal recalibrate`)", new.site["latitude_deg"])
+                        log.warning("SIGHUP: %s changed from %s to %s; it takes effect at the next restart",
+                                    top, getattr(self.cfg, top), getattr(new, top))
                 changed = _changed_fields(self.cfg, new, ("validation", "push", "monitor", "store"))
                 now_ = [c for c in changed if c.split(" ")[0] not in AT_SWITCH_ON]
                 if now_:  # read by the session at its next check
                     log.info("SIGHUP: changed, in effect now: %s", "; ".join(now_))
                 later = [c for c in changed if c.split(" ")[0] in AT_SWITCH_ON]
                 later += _changed_fields(self.cfg, new, ("estimator",), skip=("terms",))
+                # the still detector is made, and the site read, at a session's start: named as every
+                # other field (they said "still settings changed" and the new latitude alone: an
+                # integrator's fault campaign, rc33 G6)
+                later += _changed_fields(self.cfg, new, ("still", "site"))
                 if later:  # the learner (method, forgetting, step, convergence) is built at a switch-on
                     log.info("SIGHUP: changed, in effect at the next switch-on (or `gyrocal recalibrate`): "
                              "%s", "; ".join(later))
