@@ -1762,10 +1762,11 @@ class Session(RecoveryMixin):
             # the alarm is back on the bias stage the last restart pushed: a bias does not explain it (the
             # held terms are off at the poses since), and what does is learnt from the samples since that
             # restart, which a new restart would throw away. A unit whose gravity terms had moved 10-30
-            # deg/h since its held set got a bias stage after each alarm, 12-19 pushes in 120-300 s, and
+            # deg/h since its held set got a bias stage after each alarm, 12-19 pushes in 100-200 s, and
             # was left 14-65 deg/h off (an integrator's fault campaign, rc33 W0/W1/W7). A second step of
-            # the bias is still placed: the step check looks at those samples (it restarts learning)
-            if self._step_found(every_block=True):
+            # the bias is still placed: the step check looks at those samples as each 2 blocks come (it
+            # restarts learning)
+            if self._step_found():
                 return
             if self.applied.version not in self._alarm_kept:
                 self._alarm_kept.add(self.applied.version)
