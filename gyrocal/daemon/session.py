@@ -382,10 +382,9 @@ class Session(RecoveryMixin):
 
     def _being_pushed(self, msg: CoeffReport) -> bool:
         """Whether ``msg`` reports the very set of the push under way (version, terms and CRC)."""
-        w = None if self.push is None else self.push.write
-        return w is not None and w.version == msg.version and w.terms_id == msg.terms_id and \
-            coeff_set_crc(w.version, w.terms_id, w.coeffs_dps) == \
-            coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
+        p = self.push
+        return p is not None and p.write.version == msg.version and p.write.terms_id == msg.terms_id \
+            and p.expected_crc == coeff_set_crc(msg.version, msg.terms_id, msg.coeffs_dps)
 
     def on_report(self, msg: CoeffReport, now: float) -> None:
         """The unit's set: checked, reconciled with the store, then the base of learning."""
@@ -1815,13 +1814,13 @@ class Session(RecoveryMixin):
 
     def status(self) -> dict[str, Any]:
         ok, why = self.learner.converged
+        held = self._held_now()
         return {
             "state": self.state.value,
             "reason": self.reason,
             "unit": {"serial": self.hello.serial, "boot_count": self.hello.boot_count,
                      "fw": self.hello.fw_version, "rate_hz": getattr(self.hello, "rate_hz", 0)},
-            "applied": None if self._held_now() is None else {
-                "version": self._held_now().version, "terms_id": self._held_now().terms_id},
+            "applied": None if held is None else {"version": held.version, "terms_id": held.terms_id},
             "samples": self.samples, "still_samples": self.still_samples,
             "trained_samples": self.learner.samples, "dtemp_inexact_samples": self.inexact_samples,
             "push_blind_samples": self.blind_samples,

@@ -116,7 +116,7 @@ class RecoveryMixin:
         self._read_asks = 0
         if self.push is not None:
             self.push.link_down = False
-        if self.push is None:
+        else:
             self._forget_set()
         self.request_read(now)
 
