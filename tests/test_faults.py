@@ -35,6 +35,11 @@ def _acked(h: Harness) -> bool:
     return h.session is not None and h.session.last_push.get("status") == "acked"
 
 
+def _unplugged(msg: Any) -> None:
+    """A link's send with the cable out: it raises, as the serial and CAN links do."""
+    raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
+
+
 # ---- containment ------------------------------------------------------------------------------
 def test_the_link_failing_mid_push_becomes_a_record_not_an_exception(tmp_path: Path) -> None:
     h = Harness.make(tmp_path, faults=Faults(drop_acks=100))
@@ -43,10 +48,7 @@ def test_the_link_failing_mid_push_becomes_a_record_not_an_exception(tmp_path: P
     s = h.session
     assert s is not None and s.state is State.PUSHING
 
-    def unplugged(msg: Any) -> None:
-        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
-
-    s.send = unplugged
+    s.send = _unplugged
     h.run(30, until=_pushed)  # must not raise
     assert s.last_push["status"] in ("link_down", "timeout")
     assert s.state is not State.PUSHING and s.send_failures > 0
@@ -64,10 +66,7 @@ def test_a_push_into_a_link_that_takes_nothing_ends_link_down(tmp_path: Path) ->
     s = h.session
     rec = h.store.get(4242, s.last_push["version"])
 
-    def unplugged(msg: Any) -> None:
-        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
-
-    s.send = unplugged
+    s.send = _unplugged
     assert s.start_push(rec.version, list(rec.terms), np.asarray(rec.coefficients_dps), h.now) is None
     h.run(30, until=lambda hh: hh.session.push is None)
     assert s.last_push["status"] == "link_down" and s.push is None
@@ -345,10 +344,7 @@ def test_a_write_into_a_link_the_session_said_is_down_is_not_warned_again(caplog
         sends.append(msg)
         return len(sends) == 1  # the first write left; the cable was pulled before its ack
 
-    def raising(msg: Any) -> None:
-        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
-
-    for send, warned in ((down, 0), (raising, 3)):
+    for send, warned in ((down, 0), (_unplugged, 3)):
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="gyrocal.push"):
             t, p = 0.0, PushTransaction(write, send, 0.0)
@@ -374,12 +370,9 @@ def test_a_link_said_lost_mid_push_is_not_said_again_by_the_push_or_the_session(
     h.run(90, until=lambda h: h.session is not None and h.session.state is State.PUSHING)
     s = h.session
 
-    def unplugged(msg: Any) -> None:
-        raise LinkError("serial link to /dev/ttyUSB0 is down; the message was not sent")
-
     with caplog.at_level(logging.INFO):
         s.link_lost()
-        s.send = unplugged
+        s.send = _unplugged
         h.run(30, until=_pushed)
     said = [(r.levelno, r.getMessage()) for r in caplog.records]
     assert any("no ack within" in m for _, m in said) and any("could not be sent" in m for _, m in said), said
