@@ -637,11 +637,14 @@ def test_a_read_back_the_store_could_not_settle_is_settled_when_it_returns(tmp_p
     h.run(1.0)
     s = h.session
     assert s.agreement.get("unit_version") == v and not s.agreement["agree"], s.agreement
+    # and status says the store is down: it said "ok" for 15 s of a daemon restarted on a full disk
+    # while the journal said ENOSPC (an integrator's campaign, G5)
+    assert s.status()["faults"]["store"] == "store unavailable: [Errno 30] Read-only file system"
     ro["on"] = False
     h.run(s.STORE_RETRY_S + 1)
     assert h.store.get(4242, v).push["status"] == "applied_ack_lost"
     assert s.agreement["agree"], s.agreement  # on v, or on the bias stage pushed over it meanwhile
-    assert s.store_error is None
+    assert s.store_error is None and s.status()["faults"]["store"] == "ok"
 
 
 def test_stopping_with_a_push_result_the_store_could_not_take_says_so(

@@ -63,7 +63,8 @@ class Agreement:
     agree: bool
     note: str
     own_bias_dph: list[float] | None = None  # the unit's boot-measured constant minus the stored one
-    store_failed: bool = False  # the store could not take the settled status: to be tried again
+    # why the store could not take the settled status (to be tried again), or None
+    store_failed: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         out = {"agree": self.agree, "note": self.note, "unit_version": self.unit_version,
@@ -147,7 +148,7 @@ def reconcile(store: CalibrationStore, serial: int, version: int, crc: int | Non
     except Exception as err:  # a full disk: say so; the caller tries again (store_failed)
         return Agreement(version, crc, status, False,
                          f"the unit holds v{version} (stored as {status!r}); store not updated: {err}",
-                         store_failed=True)
+                         store_failed=str(err))
     if acked:
         log.info("unit %d holds v%d, acked before its read-back was lost: read back now, recorded as acked",
                  serial, version)

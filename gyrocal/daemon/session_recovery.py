@@ -148,6 +148,11 @@ class RecoveryMixin:
                 # closed the set the unit had acked and held as 'abandoned' (an integrator's fault
                 # campaign, F1). Settled again every STORE_RETRY_S (_settle_again)
                 self._reconcile_again = {**(self._reconcile_again or {}), msg.version: msg}
+                # status's faults.store said "ok" for 15 s of a daemon restarted on a full disk, while
+                # the journal said ENOSPC and the acked set stayed 'pending' (an integrator's campaign,
+                # G5); _settle_again says "ok" again once it is settled
+                if self.store_error is None:
+                    self.store_error = agreement.store_failed
         except Exception as err:  # the store is advisory here: learning goes on
             self.agreement = {"unit_version": msg.version, "agree": False, "note": f"not reconciled: {err}"}
         lp = self.last_push
