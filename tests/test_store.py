@@ -439,6 +439,29 @@ def test_a_read_only_state_directory_at_start_is_a_fault_not_an_exit(tmp_path: P
     assert s.read_only and "Read-only file system" in s.read_only and s.units() == []
 
 
+def test_a_store_read_only_at_start_says_so_until_a_write_goes_through(tmp_path: Path, monkeypatch,
+                                                                       caplog) -> None:
+    """status's store_view.read_only_at_start kept "... cannot be written (Permission denied)" to the
+    end of a run whose store was written from 21 s on (an integrator's campaign, rc33 G8)."""
+    from gyrocal.daemon import store as store_mod
+
+    CalibrationStore(tmp_path)
+    real = os.access
+    monkeypatch.setattr(store_mod.os, "access", lambda p, mode: False if mode & os.W_OK else real(p, mode))
+    s = CalibrationStore(tmp_path)
+    assert s.read_only
+    monkeypatch.setattr(store_mod.os, "access", real)  # chmod'ed writable meanwhile
+    caplog.set_level(logging.INFO, logger="gyrocal.daemon.store")
+    rec = s.add(make_record())
+    assert s.read_only is None and "could not be at start" in caplog.text
+    monkeypatch.setattr(store_mod.os, "access", lambda p, mode: False if mode & os.W_OK else real(p, mode))
+    s2 = CalibrationStore(tmp_path)
+    assert s2.read_only
+    monkeypatch.setattr(store_mod.os, "access", real)
+    s2.update_push(rec.serial, rec.version, {"status": "acked"})
+    assert s2.read_only is None
+
+
 def test_each_fsync_of_a_write_feeds_the_watchdog_first(tmp_path: Path) -> None:
     """On a disk taking 2-3 s per fsync, a record and its push result took 10.9 s and systemd's 10 s
     watchdog would have killed the daemon mid-push (an operator's audit). The store calls its io beat

@@ -274,7 +274,8 @@ class CalibrationStore:
         self._lock = threading.RLock()
         self._cache: dict[int, dict[int, CalibrationRecord]] = {}
         self._max_seen: dict[int, int] = {}  # highest version file name seen, valid or not
-        self.read_only: str | None = None  # why the store cannot be written since start, or None
+        # why the store could not be written at start, until a write goes through; or None
+        self.read_only: str | None = None
         self._check_dir()
 
     def _check_dir(self) -> None:
@@ -492,6 +493,7 @@ class CalibrationStore:
                     raise ValueError(f"unit {serial} already has version {record.version} on disk")
                 record.version += 1
             atomic_write_json(udir / f"v{record.version:06d}.json", record.to_dict())
+            self._written()
             recs[record.version] = record
             self._max_seen[serial] = max(self._max_seen.get(serial, 0), record.version)
             log.info("calibration store: unit %d version %d written (%d terms, push %s)",
@@ -532,9 +534,18 @@ class CalibrationStore:
                             serial, version, merged.get("status"))
             new = CalibrationRecord(**{**{f.name: getattr(rec, f.name) for f in fields(rec)}, "push": merged})
             atomic_write_json(self._unit_dir(serial) / f"v{version:06d}.json", new.to_dict())
+            self._written()
             self._cache[serial][version] = new
             log.info("calibration store: unit %d version %d push %s", serial, version, merged.get("status"))
             return new
+
+    def _written(self) -> None:
+        """A write went through: a store read-only at start is not any more. Status kept "... cannot be
+        written (Permission denied)" to the end of a run whose store was locked and written from 21 s on
+        (an integrator's campaign, rc33 G8)."""
+        if self.read_only is not None:
+            log.info("calibration store: written now; it could not be at start (%s)", self.read_only)
+            self.read_only = None
 
     def prune(self, serial: int, keep: int) -> list[int]:
         """Delete all but the ``keep`` newest versions of ``serial`` (0: keep every one); returns the
