@@ -379,3 +379,34 @@ def test_a_link_said_lost_mid_push_is_not_said_again_by_the_push_or_the_session(
     assert not [m for lv, m in said if lv >= logging.WARNING and ("no ack" in m or "not sent" in m)], said
     assert s.last_push["status"] in ("link_down", "timeout")
     assert h.store.get(4242, s.last_push["version"]).push["status"] == s.last_push["status"]
+
+
+def test_an_ack_that_comes_in_the_back_off_after_its_timeout_is_taken() -> None:
+    """A unit that acks in 0.8 s, after a reload cut push.ack_timeout_s to 0.5: each ack came in the
+    back-off before the next attempt and was not taken. v9 was written 5 times, 5 acks came, and the
+    push ended 'timeout' (an integrator's campaign, rc33 G7). protocol.md: a later answer is not
+    lost. The late ack is taken and the set read back; only an ack of this very set (version and
+    CRC) is."""
+    from gyrocal.daemon.push import PushPhase, PushTransaction
+    from gyrocal.protocol.messages import CoeffAck, CoeffRead, CoeffReport, CoeffWrite, coeff_set_crc
+    from gyrocal.protocol.termsets import terms_id
+
+    terms = ["1", "gx", "gy", "gz"]
+    write = CoeffWrite(9, terms_id(terms), np.full((3, 4), 0.001))
+    crc = coeff_set_crc(write.version, write.terms_id, write.coeffs_dps)
+    for late in (CoeffAck(9, crc ^ 1), CoeffAck(8, crc), CoeffAck(9, crc)):
+        sent: list[Any] = []
+        p = PushTransaction(write, sent.append, 0.0, ack_timeout_s=0.5, retries=5)
+        t = 0.0
+        while t < 0.79:
+            t += 0.01
+            p.tick(t)
+        assert p.phase is PushPhase.BACKOFF and p.attempts == 1
+        taken = p.on_message(late, t)
+        if late.crc != crc or late.version != 9:
+            assert not taken and p.phase is PushPhase.BACKOFF  # not this set's ack: the push goes on
+            continue
+        assert taken and p.phase is PushPhase.WAIT_READBACK and p.acked_crc == crc
+        assert isinstance(sent[-1], CoeffRead) and sum(isinstance(m, CoeffWrite) for m in sent) == 1
+        p.on_message(CoeffReport(9, write.terms_id, write.coeffs_dps), t + 0.1)
+        assert p.result is not None and p.result.status == "acked" and p.result.readback_ok
