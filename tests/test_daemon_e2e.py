@@ -289,6 +289,10 @@ def test_the_store_is_pruned_to_keep_versions_at_start_and_at_each_switch_on(tmp
         stop(sim)
 
 
+# extended only (52 s of real time, the longest test in CI): the NAK's handling is checked in process
+# (test_daemon_session.py, UNKNOWN_TERMS), and the push of a set outside the built-in table to a unit
+# whose table holds it by the warm-up spec's test below
+@EXTENDED_ONLY
 def test_a_term_set_the_unit_does_not_know_is_refused_once_and_said_then_pushed_to_a_unit_that_does(
         tmp_path: Path) -> None:
     """estimator.terms = seed 000 + dtemp, a set outside the protocol's built-in table.

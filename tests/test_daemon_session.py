@@ -1610,3 +1610,30 @@ def test_an_alarm_back_on_the_bias_stage_of_a_restart_does_not_restart_learning_
     left = h.unit.status()["drift_rms_compensated_dps"]
     assert max(left.values()) * 3600 < 1.0, left  # a full set came: the terms are learnt again
     assert h.session.last_push.get("status") == "acked" and not h.session.alarm
+
+
+def test_a_term_set_the_unit_does_not_know_is_refused_once_and_said(tmp_path: Path) -> None:
+    """estimator.terms outside the unit's table (seed 000 + dtemp): the daemon pushes it, the unit NAKs
+    UNKNOWN_TERMS, the status says so and names estimator.terms, and no further version is minted
+    this session (the in-process half of tests/test_daemon_e2e.py's test, which runs extended only)."""
+    from gyrocal.model.terms import SEED000_TERMS
+    from gyrocal.protocol.messages import CoeffNak, CoeffWrite, NakReason
+    from gyrocal.protocol.termsets import terms_id
+
+    terms = [*SEED000_TERMS, "dtemp"]
+    h = Harness.make(tmp_path, estimator={"terms": terms})
+    unit_handle = h.unit.handle
+
+    def handle(msg):  # noqa: ANN001, ANN202  (in process, the unit shares the daemon's term table)
+        if isinstance(msg, CoeffWrite) and msg.terms_id == terms_id(terms):
+            return [CoeffNak(msg.version, 0, int(NakReason.UNKNOWN_TERMS))]
+        return unit_handle(msg)
+
+    h.unit.handle = handle  # type: ignore[method-assign]
+    h.switch_on()
+    h.run(120, until=lambda h: bool(h.session and h.session.last_push))
+    s = h.session
+    assert s is not None and s.last_push["status"] == "nak" and s.last_push["nak_reason"] == 2, s.last_push
+    h.run(20)
+    assert s.reason.startswith("the unit does not know") and "estimator.terms" in s.reason, s.reason
+    assert [r.version for r in h.store.history(4242)] == [s.last_push["version"]]
