@@ -410,3 +410,25 @@ def test_an_ack_that_comes_in_the_back_off_after_its_timeout_is_taken() -> None:
         assert isinstance(sent[-1], CoeffRead) and sum(isinstance(m, CoeffWrite) for m in sent) == 1
         p.on_message(CoeffReport(9, write.terms_id, write.coeffs_dps), t + 0.1)
         assert p.result is not None and p.result.status == "acked" and p.result.readback_ok
+
+
+def test_a_read_the_link_did_not_take_is_asked_again_soon_after_the_link_returns(tmp_path: Path) -> None:
+    """The unit's set unknown (a read-back due) while the CAN bus is down for 10 s, samples flowing
+    again at once when it returns: the COEFF_READs that could not be sent doubled the back-off as if
+    the unit had not answered, and the set was read back 7 s after the samples returned, none of them
+    learnt meanwhile (an integrator's campaign, rc33 G4). A read the link did not take is asked again
+    after push.ack_timeout_s (1 s)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(2)
+    s = h.session
+    assert s is not None and s.applied is not None
+    send = s.send
+    s.send = _unplugged
+    s._forget_set()
+    s.request_read(h.now)
+    h.run(10)
+    assert s.applied is None and s.send_failures >= 8  # asked about once a second, never answered
+    s.send = send  # the bus is back
+    h.run(1.5)
+    assert s.applied is not None and s._read_asks <= 1

@@ -121,12 +121,17 @@ class RecoveryMixin:
         self.request_read(now)
 
     def request_read(self, now: float) -> None:
-        """Ask for the unit's set (COEFF_READ), with a back-off while it does not answer."""
+        """Ask for the unit's set (COEFF_READ), with a back-off while it does not answer. A read the
+        link did not take is not the unit's silence: it is asked again after ``push.ack_timeout_s``.
+        With the back-off doubling through a 10 s CAN bus outage, the set was read back 7 s after the
+        samples returned, and none of them was learnt meanwhile (an integrator's campaign, rc33 G4)."""
+        if not self._send(CoeffRead()):
+            self._read_deadline = now + max(float(self.cfg.push["ack_timeout_s"]), 0.05)
+            return
         self._read_asks += 1
         delay = min(self.cfg.push["ack_timeout_s"] * 2.0 ** max(0, self._read_asks - 1),
                     self.READ_BACKOFF_MAX_S)
         self._read_deadline = now + max(delay, 0.05)
-        self._send(CoeffRead())
 
     def _reconcile(self, msg: CoeffReport) -> None:
         try:
