@@ -101,7 +101,11 @@ def test_a_can_recording_answers_from_its_own_hello_and_coeff_report(tmp_path: P
     assert isinstance(rec.first_hello, Hello) and isinstance(rec.first_report, CoeffReport)
     res = replay(rec, _cfg(tmp_path))
     s = res["sessions"][0]
-    assert s["unit"]["serial"] == 4242 and s["applied"]["version"] == 3  # the recorded unit's set
+    assert rec.first_report.version == 3 and s["unit"]["serial"] == 4242
+    # the recorded unit's set, or a set pushed over it (its bias moved 10-23 deg/h at this boot: the
+    # refinement at refine.HELD_CUT comes 30 s in), numbered above it
+    assert s["applied"]["version"] == 3 or [p["version"] for p in res["pushes"]] == [s["applied"]["version"]]
+    assert all(p["version"] > 3 for p in res["pushes"])
     assert res["samples"] == 4000 and s["samples"] + res["samples_before_hello"] <= 4000
     assert s["trained_samples"] > 0 and not res["dropped"]
 

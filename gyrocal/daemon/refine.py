@@ -12,7 +12,8 @@ would take out of the present output at the poses seen (3,), and ``held_left`` t
 predicted drift left when it was pushed (3,; zeros for a set the daemon did not push):
 
 - an axis **gains** when ``left <= target`` or ``left * cut <= removes`` (the held set is off on it by
-  ``cut`` times the new set's own uncertainty; ``cut`` is ``push.min_cut``, 20);
+  ``cut`` times the new set's own uncertainty; ``cut`` is ``push.min_cut``, 20), or, on a unit that
+  holds a set, ``left * HELD_CUT <= removes`` (4: a first push of a unit that holds nothing keeps 20);
 - an axis is **not made worse** when it gains, or ``left <= NOT_WORSE_RATIO * max(held_left,
   removes)``: the new set is predicted about as accurate as the held set was when it was pushed, or
   the held set is off by more than the new set's uncertainty. The ratio (2) is there because the two
@@ -80,6 +81,16 @@ KEPT_GAIN = 3.0
 gains when it leaves 1/KEPT_GAIN of the held set's predicted drift there: a kept y/z whose bias had
 moved 21-25 deg/h was never refined, a full set leaving 5-6 deg/h falling short of 1/20 of the 21-26
 it removed (a serial integrator's re-check)."""
+HELD_CUT = 4.0
+"""On a unit that holds a set (a refinement, or a full set over a held set's bias stage), an axis also
+gains when the drift the new set removes is HELD_CUT times its predicted drift left: the held set is
+off there by 4x the new set's uncertainty, so a prediction that misses by 2x still halves the axis's
+drift. With ``cut`` (20) alone, a tumbling unit whose gravity terms had moved 3 deg/h was left at
+3.9/3.5/5.7 deg/h to the end of a 110 s run, its status saying the new set would leave 0.6 of the
+3.1-6.1 deg/h it removes: 1/20 of that takes 25 minutes of rests (an integrator's campaign, rc33 G2).
+A held set that is right gives ``removes`` about equal to ``left`` (the new set's own error), so
+this does not push again and again: the next refinement needs the drift left 4x lower, 16x the samples.
+A unit that holds nothing keeps ``cut`` on every axis (a first push cuts every axis 10x: issue 9)."""
 NOT_WORSE_RATIO = 2.0
 """How much larger than the held set's a refinement's predicted drift left may be on an axis that does
 not gain (see the module docstring)."""
@@ -107,11 +118,12 @@ class GateResult:
 def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
          held_left: np.ndarray | None = None, widened: bool = False,
          floor: np.ndarray | None = None, min_improvement: float = 0.2,
-         kept: np.ndarray | None = None) -> GateResult:
+         kept: np.ndarray | None = None, holds_set: bool = False) -> GateResult:
     """The rule of the module docstring; all figures per axis in deg/s (``floor``: None, or the
     wander's drift (3,) that no set removes). ``kept`` (3,) bool: axes on which the held set kept an
     older set's bias (a bias stage, ``kept_axes``): such an axis also gains when the new set's drift
-    left is at most 1/KEPT_GAIN of the held set's there, which holds the bias's move."""
+    left is at most 1/KEPT_GAIN of the held set's there, which holds the bias's move. ``holds_set``: the
+    unit holds a set (any version above 0, known to the store or not): an axis also gains at HELD_CUT."""
     left = np.asarray(left, dtype=float)
     removes = np.nan_to_num(np.asarray(removes, dtype=float), nan=0.0)
     held = np.zeros(3) if held_left is None else np.nan_to_num(np.asarray(held_left, dtype=float))
@@ -124,6 +136,8 @@ def gate(left: np.ndarray, removes: np.ndarray, target_dps: float, cut: float,
                 & (np.hypot(left, f) <= (1.0 - min_improvement) * np.hypot(removes, f))
         if kept is not None:
             gains |= np.asarray(kept, dtype=bool) & (held > 0) & (left * KEPT_GAIN <= held)
+        if holds_set:
+            gains |= left * min(cut, HELD_CUT) <= removes
         not_worse = gains | (left <= NOT_WORSE_RATIO * np.maximum(held, removes))
     if not np.any(held > 0):  # a held set the daemon knows nothing about: every axis must gain
         ok = finite and bool(np.all(gains))

@@ -35,7 +35,8 @@ stuck state):
 
 - Reading the unit's set (COEFF_READ, at the start, after a reconnect, after a failed push): asked
   again with a back-off that doubles from ``push.ack_timeout_s`` to ``READ_BACKOFF_MAX_S``; after
-  ``READ_WARN_AFTER`` unanswered asks, one WARNING. Until a valid report comes, the session counts
+  ``READ_WARN_AFTER`` unanswered asks, one WARNING; an ask the link could not send does not count,
+  and is made again after ``push.ack_timeout_s``. Until a valid report comes, the session counts
   samples but does not learn (raw = out + applied set needs the applied set), and status says so.
 - A refused report (NaN/Inf, absurd values, a term set this daemon does not know; push.check_report)
   is counted (``refused_reports``), logged once, and asked for again with the same back-off.
@@ -843,8 +844,9 @@ class Session(RecoveryMixin):
         # no worse on any axis (and pass validation)
         wide = wide or self._held_has_north
         floor = None if bias else self.learner.wander_floor(self.cfg.push["wander_horizon_s"])
+        holds = not bias and self.applied is not None and self.applied.version > 0
         g = self._gate_result = refine.gate(left, removes, target, cut, held_left, wide, floor,
-                                            self.cfg.validation["min_improvement"], held_kept)
+                                            self.cfg.validation["min_improvement"], held_kept, holds)
         self._keep_held = None
         if bias and not g.ok and self._applied_coeffs() is not None and np.all(np.isfinite(left)) \
                 and np.any(g.gains):
@@ -856,10 +858,11 @@ class Session(RecoveryMixin):
             return True, (f"bias stage on axis {_axes(g.gains)}; axis {_axes(~g.gains)} keeps the held bias "
                           f"for now (moved {_dph(removes)} deg/h, the new bias's error {_dph(left)} deg/h: "
                           f"pushed once it moves {cut:g}x its error)")
+        share = min(cut, refine.HELD_CUT) if holds else cut
         why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
                f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
-               f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{cut:g} of the {_dph(removes)} deg/h "
-               "the set removes")
+               f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{share:g} of the {_dph(removes)} "
+               "deg/h the set removes")
         if floor is not None:
             why += (f" (or {refine.WANDER_LEFT_SHARE:g} of the bias wander's {_dph(floor)} deg/h over "
                     f"{self.cfg.push['wander_horizon_s']:g} s, the push cutting the total by "
