@@ -1661,3 +1661,37 @@ def test_a_term_set_the_unit_does_not_know_is_refused_once_and_said(tmp_path: Pa
     h.run(20)
     assert s.reason.startswith("the unit does not know") and "estimator.terms" in s.reason, s.reason
     assert [r.version for r in h.store.history(4242)] == [s.last_push["version"]]
+
+
+def test_a_late_ack_taken_in_the_back_off_switches_the_session_to_the_new_set(tmp_path: Path) -> None:
+    """A unit that acks 0.3 s after push.ack_timeout_s: the ack comes in the back-off and is taken
+    (rc33 G7). The session must then hold the new set as the unit's, from the ack on. It said "v8
+    applied and read back" and kept v7: nearly every later sample was skipped as of an unknown set,
+    with nothing learnt or monitored (an integrator's re-check, rc35 N0, 3 of 3 runs)."""
+    from gyrocal.daemon.push import PushPhase
+    from gyrocal.protocol.messages import CoeffAck, CoeffWrite
+
+    h = Harness.make(tmp_path)
+    held: list[CoeffAck] = []
+    unit_handle = h.unit.handle
+
+    def handle(msg):  # noqa: ANN001, ANN202
+        out = unit_handle(msg)
+        if isinstance(msg, CoeffWrite) and not held:  # applied now, its ack held back
+            held.extend(m for m in out if isinstance(m, CoeffAck))
+            return [m for m in out if not isinstance(m, CoeffAck)]
+        return out
+
+    h.unit.handle = handle  # type: ignore[method-assign]
+    h.switch_on()
+    h.run(90, until=lambda h: h.session.push is not None and h.session.push.phase is PushPhase.BACKOFF)
+    s = h.session
+    assert held and s.push is not None and s.push.phase is PushPhase.BACKOFF and s.push.attempts == 1
+    h.outbox.append((held[0], h.unit.session_index - 1))  # the late ack, on the wire after the samples
+    h.run(1.0)
+    assert s.last_push.get("status") == "acked" and s.last_push["attempts"] == 1, s.last_push
+    assert s.applied is not None and s.applied.version == held[0].version
+    blind, learnt = s.blind_samples, s.learner.samples
+    h.run(10)
+    assert s.blind_samples == blind and s.learner.samples > learnt  # learning goes on, on the new set
+    assert all(v is not None for v in s.status()["monitor_rms_dps"].values())  # and monitored
