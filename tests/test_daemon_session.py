@@ -1695,3 +1695,29 @@ def test_a_late_ack_taken_in_the_back_off_switches_the_session_to_the_new_set(tm
     h.run(10)
     assert s.blind_samples == blind and s.learner.samples > learnt  # learning goes on, on the new set
     assert all(v is not None for v in s.status()["monitor_rms_dps"].values())  # and monitored
+
+
+def test_a_drift_alarm_again_on_a_set_said_off_at_these_poses_is_info(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Once the session has said the alarm is back on a restart's bias stage and learning goes on
+    towards a full set, an alarm that drops and comes again on that set is that line's detail: it was
+    one more WARNING each time (an integrator's re-check, rc35 N2). The first alarm stays a WARNING."""
+    from dataclasses import replace
+
+    h = Harness.make(tmp_path, seed=1)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
+    h.run(3)
+    c = h.unit.truth.coeffs_dps.copy()
+    c[:, 1:] += np.random.default_rng(101).normal(0, 10 / 3600, size=c[:, 1:].shape)
+    h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
+    with caplog.at_level(logging.INFO, logger="gyrocal.session"):
+        h.switch_on()
+        h.run(120, until=lambda h: bool(h.session._alarm_kept) and h.session.alarm)
+        s = h.session
+        assert s._alarm_kept and s.applied.version in s._alarm_kept
+        caplog.clear()
+        s.alarm = False  # the window dipped under the limit for a moment
+        h.run(1.0, until=lambda h: h.session.alarm)
+    said = [(r.levelno, r.getMessage()) for r in caplog.records if "drift alarm: residual" in r.getMessage()]
+    assert s.alarm and said and all(lv == logging.INFO for lv, _ in said), said

@@ -1650,7 +1650,12 @@ class Session(RecoveryMixin):
             # window's RMS still holds the blocks from before a step (8.1 deg/h for a 21.6 deg/h step,
             # a fleet engineer's check): the newest rests' figure says what the unit is left with now
             recent = self.monitor.since(self._t_last - self.ALARM_RECENT_S).rms_with(applied)
-            log.warning("unit %s: drift alarm: residual %s deg/h exceeds %s deg/h (the last %g s of rests: "
+            # an alarm again on a set already said to be off at these poses, with learning going on past
+            # it (_relearn_after_alarm): its detail, not a new fault; it was a WARNING after that line
+            # (an integrator's re-check, rc35 N2)
+            known = self.applied is not None and self.applied.version in self._alarm_kept
+            log.log(logging.INFO if known else logging.WARNING,
+                    "unit %s: drift alarm: residual %s deg/h exceeds %s deg/h (the last %g s of rests: "
                         "%s deg/h)", self.hello.serial, "/".join(f"{v:.3g}" for v in rms * DPH),
                         "/".join(f"{v:.3g}" for v in limit * DPH), self.ALARM_RECENT_S,
                         "/".join(f"{v:.3g}" for v in recent * DPH))
