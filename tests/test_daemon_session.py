@@ -1629,7 +1629,13 @@ def test_a_held_set_off_by_a_few_deg_h_is_refined_without_waiting_for_a_20x_cut(
     c[:, 1:] += np.random.default_rng(103).normal(0, 3 / 3600, size=c[:, 1:].shape)
     h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
     h.switch_on()
-    h.run(110)
+    waits: list[str] = []
+    for _ in range(110):
+        h.run(1.0)
+        if h.session.status()["next_set_waits"]:
+            waits.append(h.session.status()["next_set_waits"])
+    # while it monitors the bias stage, status says why the full set waits (rc35 N3)
+    assert any("1/4 of the" in w for w in waits), waits[:3]
     left = h.unit.status()["drift_rms_compensated_dps"]
     assert max(left.values()) * 3600 < 2.0, left  # 4.74/6.3/3.63 deg/h with the 20x cut alone
     s = h.session
