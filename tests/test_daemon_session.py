@@ -1727,3 +1727,22 @@ def test_a_drift_alarm_again_on_a_set_said_off_at_these_poses_is_info(
         h.run(1.0, until=lambda h: h.session.alarm)
     said = [(r.levelno, r.getMessage()) for r in caplog.records if "drift alarm: residual" in r.getMessage()]
     assert s.alarm and said and all(lv == logging.INFO for lv, _ in said), said
+
+
+def test_while_monitoring_status_says_why_no_further_set_is_pushed(tmp_path: Path) -> None:
+    """status's next_set_waits, while the reason stays "monitoring vN": the gate's figures, or the
+    last validation's refusal and when it is tried again. It was null whenever the gate had passed and
+    validation had not, most of the time on a unit at rest (an integrator's re-check of rc35 N3)."""
+    h = Harness.make(tmp_path)
+    h.switch_on()
+    h.run(90, until=_pushed)
+    s = h.session
+    seen: list[tuple[bool | None, str | None]] = []
+    for _ in range(60):
+        h.run(1.0)
+        st = s.status()
+        if st["state"] == "MONITORING" and not s.alarm:
+            seen.append((s.last_validation.get("passed"), st["next_set_waits"]))
+    refused = [w for passed, w in seen if passed is False]
+    assert refused and all(w for w in refused), seen
+    assert any("validated again after" in w for w in refused), refused

@@ -228,6 +228,7 @@ class Session(RecoveryMixin):
         self._projection: Projection | None = None  # the split of the set being validated/pushed
         self.host_remainder: dict[str, Any] | None = None  # of the last acked set, for status
         self.next_set_waits: str | None = None  # while monitoring: why no further set is pushed yet
+        self._refused_why = ""  # the last validation's refusal, for next_set_waits
         self.hello = hello
         self.learner = learner
         self.store = store
@@ -864,8 +865,9 @@ class Session(RecoveryMixin):
                           f"for now (moved {_dph(removes)} deg/h, the new bias's error {_dph(left)} deg/h: "
                           f"pushed once it moves {cut:g}x its error)")
         share = min(cut, refine.HELD_CUT) if holds else cut
-        why = (f"predicted drift left {_dph(left)} deg/h over {len(self.poses)} poses, "
-               f"{p['unseen_share']:.0%} of rests at poses not seen yet; it must be "
+        n = len(self.poses)
+        why = (f"predicted drift left {_dph(left)} deg/h over {n} pose{'' if n == 1 else 's'}, "
+               f"{p['unseen_share']:.0%} of the coming rests expected at poses not seen yet; it must be "
                f"below {self.cfg.push['target_drift_dph']:g} deg/h or 1/{share:g} of the {_dph(removes)} "
                "deg/h the set removes")
         if floor is not None:
@@ -1114,7 +1116,8 @@ class Session(RecoveryMixin):
                 why = "converged, but " + gate_why
         # while monitoring, the reason stays "monitoring vN" and the next set's wait is said beside it:
         # an aged unit left 1.2-1.8 deg/h off showed no sign of why no refinement came (rc35 N3)
-        self.next_set_waits = why if monitoring and not ok else None
+        self.next_set_waits = None if not monitoring or ok else \
+            f"the bias stage: {why}" if self.learner.bias_only else why
         if not ok:
             self._said_converged = False
             if not monitoring:  # a set the unit refused stays the first thing the status says
@@ -1132,6 +1135,11 @@ class Session(RecoveryMixin):
         if self.learner.samples < self._next_validation_at and not early:
             if not monitoring and self.last_validation.get("passed") is False:
                 self.reason = "validation failed before; collecting more samples"
+            elif monitoring and self.last_validation.get("passed") is False and self._refused_why:
+                # the gate passed, validation did not: said too, or the field was null most of the time
+                # on a unit at rest (rc35 re-check)
+                self.next_set_waits = (f"{self._refused_why}; validated again after "
+                                       f"{self._next_validation_at - self.learner.samples} more samples")
             return  # else the reason a validated set was not pushed stays what the status says
         if self.state is State.COLLECTING and not self._said_converged:
             # once per stretch of convergence: a store that refuses the set sends the session back to
@@ -1278,6 +1286,7 @@ class Session(RecoveryMixin):
             why = ""
         if why:
             self.last_validation["passed"] = False
+            self._refused_why = why
             self._next_validation_at = int(self.learner.samples * 1.5) + 1
             if stage == "bias":
                 log.info("unit %s: bias stage: %s", self.hello.serial, why)
