@@ -1670,9 +1670,9 @@ class Session(RecoveryMixin):
             known = self.applied is not None and self.applied.version in self._alarm_kept
             log.log(logging.INFO if known else logging.WARNING,
                     "unit %s: drift alarm: residual %s deg/h exceeds %s deg/h (the last %g s of rests: "
-                        "%s deg/h)", self.hello.serial, "/".join(f"{v:.3g}" for v in rms * DPH),
-                        "/".join(f"{v:.3g}" for v in limit * DPH), self.ALARM_RECENT_S,
-                        "/".join(f"{v:.3g}" for v in recent * DPH))
+                    "%s deg/h)", self.hello.serial, "/".join(f"{v:.3g}" for v in rms * DPH),
+                    "/".join(f"{v:.3g}" for v in limit * DPH), self.ALARM_RECENT_S,
+                    "/".join(f"{v:.3g}" for v in recent * DPH))
             self._relearn_after_alarm()
         self.alarm = alarm
 
