@@ -1584,6 +1584,25 @@ def test_the_first_reopen_failure_after_a_loss_is_its_detail_not_a_second_warnin
     assert sum("No such file" in r.getMessage() and r.levelno == logging.INFO for r in caplog.records) == 1
 
 
+def _calibrated_then_aged(tmp_path: Path, seed: int, age_dph: float, draw: int,
+                          noise_dps: float | None = None) -> Harness:
+    """A unit calibrated (its first set acked), whose gravity terms then move by N(0, ``age_dph``)
+    deg/h per term (``draw``: the seed of that draw) before its next switch-on, which is left to the
+    caller; ``noise_dps``: the unit's white gyro noise per sample [deg/s] from the start."""
+    from dataclasses import replace
+
+    h = Harness.make(tmp_path, seed=seed)
+    if noise_dps is not None:
+        h.unit.truth = replace(h.unit.truth, noise_dps=noise_dps)
+    h.switch_on()
+    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
+    h.run(3)
+    c = h.unit.truth.coeffs_dps.copy()
+    c[:, 1:] += np.random.default_rng(draw).normal(0, age_dph / 3600, size=c[:, 1:].shape)
+    h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
+    return h
+
+
 def test_an_alarm_back_on_the_bias_stage_of_a_restart_does_not_restart_learning_again(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A unit whose gravity terms moved (10 deg/h per term) since its held set, switched on warm on a
@@ -1592,15 +1611,7 @@ def test_an_alarm_back_on_the_bias_stage_of_a_restart_does_not_restart_learning_
     14-65 deg/h left on an integrator's independent unit (rc33 W0/W1/W7). A bias does not explain an
     alarm that is back on the bias stage a restart pushed: learning goes on from the samples since
     (a second bias step is still found by the step check)."""
-    from dataclasses import replace
-
-    h = Harness.make(tmp_path, seed=1)
-    h.switch_on()
-    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
-    h.run(3)
-    c = h.unit.truth.coeffs_dps.copy()
-    c[:, 1:] += np.random.default_rng(101).normal(0, 10 / 3600, size=c[:, 1:].shape)
-    h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
+    h = _calibrated_then_aged(tmp_path, seed=1, age_dph=10, draw=101)
     with caplog.at_level(logging.INFO, logger="gyrocal.session"):
         h.switch_on()
         h.run(120)
@@ -1618,16 +1629,7 @@ def test_a_held_set_off_by_a_few_deg_h_is_refined_without_waiting_for_a_20x_cut(
     1/20 of what it removes (25 minutes of rests), and the unit was left 3.6-6.3 deg/h off after 110 s
     where the daemon's own status said the new set would leave under 1 (rc33 G2, an integrator's
     independent unit: 3.9/3.5/5.7). A unit that holds a set gains at 4x (refine.HELD_CUT)."""
-    from dataclasses import replace
-
-    h = Harness.make(tmp_path, seed=3)
-    h.unit.truth = replace(h.unit.truth, noise_dps=0.007)
-    h.switch_on()
-    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
-    h.run(3)
-    c = h.unit.truth.coeffs_dps.copy()
-    c[:, 1:] += np.random.default_rng(103).normal(0, 3 / 3600, size=c[:, 1:].shape)
-    h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
+    h = _calibrated_then_aged(tmp_path, seed=3, age_dph=3, draw=103, noise_dps=0.007)
     h.switch_on()
     waits: list[str] = []
     for _ in range(110):
@@ -1708,15 +1710,7 @@ def test_a_drift_alarm_again_on_a_set_said_off_at_these_poses_is_info(
     """Once the session has said the alarm is back on a restart's bias stage and learning goes on
     towards a full set, an alarm that drops and comes again on that set is that line's detail: it was
     one more WARNING each time (an integrator's re-check, rc35 N2). The first alarm stays a WARNING."""
-    from dataclasses import replace
-
-    h = Harness.make(tmp_path, seed=1)
-    h.switch_on()
-    h.run(90, until=lambda h: h.session.last_push.get("status") == "acked")
-    h.run(3)
-    c = h.unit.truth.coeffs_dps.copy()
-    c[:, 1:] += np.random.default_rng(101).normal(0, 10 / 3600, size=c[:, 1:].shape)
-    h.unit.truth = replace(h.unit.truth, coeffs_dps=c)
+    h = _calibrated_then_aged(tmp_path, seed=1, age_dph=10, draw=101)
     with caplog.at_level(logging.INFO, logger="gyrocal.session"):
         h.switch_on()
         h.run(120, until=lambda h: bool(h.session._alarm_kept) and h.session.alarm)

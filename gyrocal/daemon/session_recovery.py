@@ -125,12 +125,11 @@ class RecoveryMixin:
         link did not take is not the unit's silence: it is asked again after ``push.ack_timeout_s``.
         With the back-off doubling through a 10 s CAN bus outage, the set was read back 7 s after the
         samples returned, and none of them was learnt meanwhile (an integrator's campaign, rc33 G4)."""
-        if not self._send(CoeffRead()):
-            self._read_deadline = now + max(float(self.cfg.push["ack_timeout_s"]), 0.05)
-            return
-        self._read_asks += 1
+        sent = self._send(CoeffRead())
+        if sent:  # an ask the link did not take is not one the unit left unanswered
+            self._read_asks += 1
         delay = min(self.cfg.push["ack_timeout_s"] * 2.0 ** max(0, self._read_asks - 1),
-                    self.READ_BACKOFF_MAX_S)
+                    self.READ_BACKOFF_MAX_S) if sent else self.cfg.push["ack_timeout_s"]
         self._read_deadline = now + max(delay, 0.05)
 
     def _reconcile(self, msg: CoeffReport) -> None:
