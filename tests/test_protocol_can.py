@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+from dataclasses import replace
 
 import can
 import pytest
@@ -265,6 +266,35 @@ def test_remote_extended_and_error_frames_on_our_ids_are_foreign_not_unknown_typ
               can.Message(arbitration_id=0x120, is_error_frame=True, is_extended_id=False)):
         assert dec.feed(m) == []
     assert dec.stats.foreign_frames == 3 and dec.stats.unknown_types == 0
+
+
+def test_a_sample_logged_twice_is_taken_once_and_counted() -> None:
+    """A bus logged twice, or a gateway that sends every frame again, gives each sample twice; a
+    forged copy with other values came through too. An outside user's log: x constant +180 deg/h
+    where the truth was -180, and a replay pushed 699 deg/h (rc36b H2). A copy is dropped and
+    counted in ``repeated``, in a live link and a log alike."""
+    codec = CanCodec()
+    samples = [can_sample(i) for i in range(6)]
+    frames = [f for s in samples for f in codec.encode(s)]
+    frames[10:10] = codec.encode(samples[2])  # seq 2 again, right after it
+    frames += codec.encode(replace(samples[5], gyro_dps=(0.5, 0.0, 0.0)))  # a forged seq 5
+    dec = codec.decoder()
+    assert [m for f in frames for m in dec.feed(f)] == samples
+    assert dec.stats.repeated == 2 and dec.stats.seq_gaps == 0
+
+
+def test_can_fd_frames_on_the_units_ids_are_foreign_never_samples() -> None:
+    """The protocol is classic CAN (protocol.md section 3). FD frames on a unit's sample ids were
+    decoded as its samples: 4,746 of them in an outside user's log gave an x constant of +273 deg/h
+    (rc36b H3). They are foreign frames."""
+    codec = CanCodec()
+    frames = [f for i in range(4) for f in codec.encode(can_sample(i))]
+    fd = [can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False, is_fd=True)
+          for f in frames]
+    dec = codec.decoder()
+    assert [m for f in fd for m in dec.feed(f)] == []
+    assert dec.stats.foreign_frames == len(fd) and dec.stats.frames == 0
+    assert [m for f in frames for m in dec.feed(f)] == [can_sample(i) for i in range(4)]
 
 
 def test_random_frames_on_the_units_sample_ids_are_never_believed() -> None:

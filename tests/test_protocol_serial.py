@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import binascii
 import random
+from dataclasses import replace
 
 import pytest
 
@@ -131,10 +132,10 @@ GARBAGE_TABLE = [
 @pytest.mark.parametrize("name,garbage", GARBAGE_TABLE, ids=[g[0] for g in GARBAGE_TABLE])
 @pytest.mark.parametrize("chunk", [1, 7, 4096])
 def test_garbage_before_a_frame_is_skipped_and_the_frame_found(name: str, garbage: bytes, chunk: int) -> None:
-    stream = garbage + NEXT + NEXT
+    stream = garbage + NEXT + encode_frame(q_sample(3))
     dec = FrameDecoder()
     out = [m for i in range(0, len(stream), chunk) for m in dec.feed(stream[i : i + chunk])]
-    assert out == [q_sample(2), q_sample(2)]
+    assert out == [q_sample(2), q_sample(3)]
     # Every byte that is not part of a yielded frame is counted as garbage exactly once.
     assert dec.stats.garbage_bytes == len(garbage)
     assert dec.stats.bytes == len(stream)
@@ -183,6 +184,17 @@ def test_hello_restarts_seq_so_a_new_session_is_not_a_gap() -> None:
     stream = [q_sample(100), q_sample(101), Hello(1, "1.0.0", 2), q_sample(0), q_sample(1)]
     dec.feed(b"".join(encode_frame(m) for m in stream))
     assert dec.stats.seq_gaps == 0 and dec.stats.frames == 5
+
+
+def test_a_sample_sent_twice_is_taken_once_and_counted() -> None:
+    """A copy of the previous sample (same seq) is dropped and counted in ``repeated``, whatever its
+    values: believed, a copy weighs its sample twice and a forged one is learnt (rc36b H2, on CAN)."""
+    dec = FrameDecoder()
+    forged = replace(q_sample(1), gyro_dps=(0.5, 0.0, 0.0))
+    out = dec.feed(b"".join(encode_frame(m) for m in [q_sample(0), q_sample(1), q_sample(1), forged,
+                                                        q_sample(2)]))
+    assert [m.seq for m in out] == [0, 1, 2] and out[1] == q_sample(1)
+    assert dec.stats.repeated == 2 and dec.stats.seq_gaps == 0 and dec.stats.frames == 3
 
 
 def test_buffer_stays_bounded_under_endless_noise() -> None:

@@ -346,7 +346,9 @@ def test_damaged_or_foreign_files_end_in_one_line_never_a_traceback(name: str, t
         junk = b"".join(b"line %d of something else\n" % i for i in range(50))
     path.write_bytes(junk)
     rc = main(["fit", str(path), "--terms", "1", "--all-samples"])
-    err = capsys.readouterr().err
+    # a bus another test of this worker left to the garbage collector may say so here (python-can's
+    # "UdpMulticastBus was not properly shut down"): not this command's output
+    err = "".join(ln for ln in capsys.readouterr().err.splitlines(keepends=True) if " can.bus: " not in ln)
     assert "Traceback" not in err
     if rc != 0:
         assert rc == 2 and err.startswith("gyrocal: error: ") and str(path.name) in err

@@ -97,7 +97,7 @@ class Reply:
 
 
 REJECTIONS = ("crc_errors", "oversize", "length_errors", "garbage_bytes", "unknown_types", "incomplete",
-              "bad_values", "implausible")
+              "bad_values", "implausible", "repeated")
 """The link's counters of what it dropped (DecoderStats): summed up in one line a minute."""
 
 

@@ -283,10 +283,12 @@ class FrameDecoder:
                     pos = end
                     continue
                 pos = end
-                st.frames += 1
                 if typ == T_SAMPLE:
                     last = self._last_seq
                     seq = msg.seq  # type: ignore[attr-defined]
+                    if seq == last:
+                        st.repeated += 1  # the previous sample again: a copy is not a second sample
+                        continue
                     if last is not None and seq != (last + 1) & 0xFFFFFFFF:
                         st.seq_gaps += 1
                         missing = (seq - last - 1) & 0xFFFFFFFF
@@ -295,6 +297,7 @@ class FrameDecoder:
                     self._last_seq = seq
                 elif typ == T_HELLO:
                     self._last_seq = None
+                st.frames += 1
                 out.append(msg)
         finally:
             mv.release()
