@@ -53,6 +53,7 @@ from gyrocal.daemon.notify import Notifier
 from gyrocal.daemon.reconcile import close_abandoned
 from gyrocal.daemon.restart import SeqTracker
 from gyrocal.daemon.ring import RingBuffer
+from gyrocal.daemon.sensorcheck import SensorCheck
 from gyrocal.daemon.session import Session, same_boot
 from gyrocal.daemon.stillness import RETIRED_FIELDS, StillDetector
 from gyrocal.daemon.store import CalibrationStore, set_io_beat
@@ -141,8 +142,11 @@ class Engine(CommandsMixin):
         self.started = clock()
         self.dropped_nonfinite = 0
         self.temp_check = TemperatureCheck()  # daemon/tempcheck.py: temperatures no sensor reads
+        self._temp_blind_since: float | None = None  # every sample since then dropped for its temperature
+        self.sensor_check = SensorCheck()  # daemon/sensorcheck.py: a stuck gyro, an accelerometer not at 1 g
         self._io_beat_at = -1e9  # monotonic [s] of the last watchdog ping from a store write
         self._temp_said: tuple[float, int] = (-1e9, 0)  # when the last WARNING of them was, and the count
+        self._temp_last_dropped_c = 0.0  # the last temperature dropped [degC]
         self.samples_before_hello = 0
         self.sessions_started = 0
         self.push_results: list[dict[str, Any]] = []
@@ -440,6 +444,9 @@ class Engine(CommandsMixin):
         elif now >= self._next_hello_request and self.ring.pushed:
             self._ask_hello(now)
 
+    TEMP_BLIND_SAY_S = 2.0
+    """Seconds [s] of samples all dropped for their temperature before status names it as the reason."""
+
     OPEN_GARBAGE_BYTES = 64
     """Garbage bytes [bytes] a (re)opened link may drop at its start (a frame cut midway) unsaid."""
 
@@ -637,6 +644,7 @@ class Engine(CommandsMixin):
         ``resized``: the same switch-on, sized again for its measured rate (_check_rate)."""
         if not resized:
             self.temp_check.reset()  # the unit may have cooled or warmed since the last switch-on
+            self.sensor_check.reset()
         if not resized and not getattr(hello, "rate_hz", 0):
             # a switch-on that states no rate is sized from its own samples: the last boot's rate is only
             # the first guess, and its intervals must not outvote this boot's
@@ -688,16 +696,21 @@ class Engine(CommandsMixin):
             block = block[finite]
             if block.size == 0:
                 return
-        believable = self.temp_check.keep(block["t"], block["temp"])
-        if not believable.all():
-            self._say_temperature(block["temp"][~believable], now)
-            block = block[believable]
-            if block.size == 0:
-                return
+        # the unit speaks, whatever its temperature sensor reads: a dead one made it "silent"
         self._last_sample_at = now
         if self._silent:
             self._silent = False
             log.info("unit samples again after a silence")
+        believable = self.temp_check.keep(block["t"], block["temp"])
+        if not believable.all():
+            self._say_temperature(block["temp"][~believable], now)
+            self._temp_last_dropped_c = float(block["temp"][~believable][-1])
+            block = block[believable]
+            if block.size == 0:
+                if self._temp_blind_since is None:
+                    self._temp_blind_since = now
+                return
+        self._temp_blind_since = None
         for kind, part in self.seq.feed(block):
             if kind == "restart" and self.last_hello is not None:
                 log.warning("sample sequence went back to %d for %d samples in a row: the unit restarted; "
@@ -736,6 +749,7 @@ class Engine(CommandsMixin):
         if block.size:
             self.session.heard(float(block["t"][-1]))
         decided, still = self.detector.feed(block)
+        still = self.sensor_check.judge(decided, still, self.detector, now)
         self.session.feed(decided, still, now)
         if decided.size:
             self._record_latency(self.clock() - decided["rx"])
@@ -837,6 +851,18 @@ class Engine(CommandsMixin):
             status["still"] = self.detector.status()
             if not status.get("trained_samples") and status["still"].get("why"):
                 status["reason"] = f"{status['reason']}; {status['still']['why']}"  # why nothing is learnt
+            status["sensor"] = self.sensor_check.status(self.detector.core.flat_rows)
+            blind = self._temp_blind_since
+            if blind is not None and now - blind >= self.TEMP_BLIND_SAY_S:
+                # every sample dropped for its temperature: the reason blamed "learning the unit's noise
+                # level (0 of 200 samples)" (an integrator's campaign, rc36a S4)
+                status["sensor"]["fault"] = (
+                    f"every sample's temperature is dropped for {now - blind:.0f} s (the last "
+                    f"{self._temp_last_dropped_c:.2f} degC; -327.68 is the sensor's 'no reading'; outside "
+                    f"{TEMP_MIN_C:g}..{TEMP_MAX_C:g} degC or a spike): nothing is learnt until it reads")
+            if status["sensor"]["fault"]:
+                status["reason"] = f"the unit's sensors report garbage: {status['sensor']['fault']}; " \
+                                   f"{status['reason']}"
         # silent: connected and no sample for SILENT_AFTER_S of the connection (the age of the last
         # sample before an outage made a link just back "silent for 6 s": an operator's soak)
         up_for = now - self._link_up_at if self._link_up_at is not None else None

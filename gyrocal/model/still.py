@@ -38,11 +38,12 @@ class StillRule:
     max(``band_k`` x quiet, ``band_floor_dps``) of the still median (a constant-rate turn is not
     still), and every accelerometer axis has a rolling std below ``k_std`` times its quiet level
     and no axis turns within the window (``k_turn``: gravity on the accelerometer, the rate on the
-    gyro). Still stretches then lose ``margin_s`` at each end and are dropped when shorter than
-    ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still:
-    no gyro is that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro
-    mean exceeds ``max_rate_dps`` along gravity (the rolling accelerometer mean; on every axis when
-    there is none).
+    gyro), and no gyro axis reads one value through the whole window (``GYRO_CHANGES``: a stuck or
+    railed sensor; a live gyro's noise spans thousands of its 1e-6 deg/s counts). Still stretches
+    then lose ``margin_s`` at each end and are dropped when shorter than ``min_run_s``. A unit whose
+    quiet level exceeds ``max_quiet_dps`` is never still: no gyro is that noisy at rest, so it has
+    not been at rest yet; nor is a sample whose rolling gyro mean exceeds ``max_rate_dps`` along
+    gravity (the rolling accelerometer mean; on every axis when there is none).
 
     A rest therefore yields still samples only when it lasts at least window + 2 margins + min_run
     (1.1 s with the defaults). The margins and minimum length are what hand-held real data needs
@@ -101,7 +102,11 @@ GYRO_MEAN, GYRO_STD, ACCEL_STD = slice(0, 3), slice(3, 6), slice(6, 9)
 GYRO_TURN, ACCEL_TURN = slice(9, 12), slice(12, 15)
 GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2 = slice(15, 18), slice(18, 21), slice(21, 24), slice(24, 27)
 ACCEL_MEAN = slice(27, 30)
-STATS_COLUMNS = 30
+GYRO_CHANGES = slice(30, 33)
+STATS_COLUMNS = 33
+FLAT_MIN_WINDOW = 20
+"""Windows of fewer samples than this are never judged flat (``GYRO_CHANGES``): at 10-50 Hz a
+coarsely quantised quiet gyro may repeat one count for a whole short window."""
 
 
 def turn_noise(d1_std: np.ndarray, d2_std: np.ndarray, w: int) -> np.ndarray:
@@ -251,7 +256,7 @@ def rolling_stats(gyro: np.ndarray, accel: np.ndarray, w: int) -> np.ndarray:
     """Rolling statistics over w samples, a row (STATS_COLUMNS,) per sample: gyro mean [deg/s], gyro
     and accel std [deg/s, g], gyro and accel turn (the window's second-half mean minus its first's),
     and the std of the gyro's and accel's first and second differences (0 before the first sample),
-    and the accel mean [g]."""
+    the accel mean [g], and the gyro's changes of value within the window [count]."""
     x = np.hstack([np.asarray(gyro, dtype=float), np.asarray(accel, dtype=float)])
     return _stats_rows(x, *_differences(x, None, None), w, slice(0, len(x)))
 
@@ -289,7 +294,26 @@ def _stats_rows(x: np.ndarray, d1: np.ndarray, d2: np.ndarray, w: int, sel: slic
     del mean, std, halves
     out[:, 15:21] = _rolling(d1, w)[1][sel]  # GYRO_D1, ACCEL_D1
     out[:, 21:27] = _rolling(d2, w)[1][sel]  # GYRO_D2, ACCEL_D2
+    out[:, GYRO_CHANGES] = _changes(d1[:, 0:3], w)[sel]
     return out
+
+
+def _changes(d1: np.ndarray, w: int) -> np.ndarray:
+    """Per row and column of first differences d1 (N, K): how many times the value changes within the
+    row's centred window of w samples [count], exactly (integer sums). A gyro axis that changes 0 times
+    is stuck or railed: one at 2.0 deg/s with no noise was learnt as a 7,200 deg/h bias and pushed,
+    and the record predicted 0.00002 deg/h left (an integrator's campaign, rc36a S1). Windows shorter
+    than FLAT_MIN_WINDOW give w (never flat)."""
+    n = d1.shape[0]
+    if w < FLAT_MIN_WINDOW:
+        return np.full(d1.shape, float(w))
+    cs = np.zeros((n + 1, d1.shape[1]), dtype=np.int64)
+    np.cumsum(d1 != 0, axis=0, out=cs[1:])
+    i = np.arange(n)
+    lo = np.clip(i - w // 2, 0, n)
+    hi = np.clip(i + w - w // 2, 0, n)
+    # the changes between the window's own samples: differences lo+1 .. hi-1
+    return (cs[hi] - cs[np.minimum(lo + 1, hi)]).astype(float)
 
 
 def _slow(stats: np.ndarray, rule: StillRule) -> np.ndarray:
@@ -312,6 +336,9 @@ def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
     gives (``turn_noise``, from its differences, blind to a steady turn), floored like the spread: a
     quantised axis at white noise's 2 (quantum / 2) / sqrt(w).
     """
+    live = np.all(stats[:, GYRO_CHANGES] > 0, axis=1)
+    if np.any(live):  # a stuck axis's windows would make its quiet level 0 (status showed 1e-09 deg/s)
+        stats = stats[live]
     cols = np.r_[GYRO_STD, ACCEL_STD, GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2]
     q = np.full(STATS_COLUMNS, np.nan)
     q[cols] = np.quantile(stats[:, cols], rule.quantile, axis=0)  # per column, one call
@@ -340,6 +367,7 @@ def quiet_mask(stats: np.ndarray, lv: QuietLevels, rule: StillRule) -> np.ndarra
     ok &= np.all(stats[:, ACCEL_STD] < rule.k_std * lv.accel_g, axis=1)
     ok &= np.all(np.abs(stats[:, ACCEL_TURN]) < rule.k_turn * lv.turn_g, axis=1)
     ok &= np.all(np.abs(stats[:, GYRO_TURN]) < rule.k_turn * lv.turn_dps, axis=1)
+    ok &= np.all(stats[:, GYRO_CHANGES] > 0, axis=1)
     if np.any(lv.gyro_dps > rule.max_quiet_dps):
         ok[:] = False
     return ok
@@ -442,6 +470,9 @@ class StreamingStill:
         self._quantum = np.full(3, np.inf)  # smallest accel step seen per axis [g] (quantisation)
         self._prev: np.ndarray | None = None  # the row before the kept look-behind (differences)
         self._prev_d1: np.ndarray | None = None  # its first difference
+        self.flat_rows = np.zeros(3, dtype=np.int64)  # rows judged whose gyro axis read one value
+        self.flat_now = np.zeros(3, dtype=bool)  # ... per axis, at the newest row judged
+        self.flat_value_dps = np.zeros(3)  # the newest row judged's gyro reading [deg/s]
 
     def reset(self) -> None:
         self.__init__(self.rate_hz, self.rule)  # type: ignore[misc]
@@ -493,6 +524,11 @@ class StreamingStill:
             st = np.vstack(self._pending_stats)
             ok = quiet_mask(st, self.levels, self.rule)
             prs = np.concatenate(self._pending_rows)
+            flat = st[:, GYRO_CHANGES] <= 0
+            self.flat_rows += flat.sum(axis=0)
+            if prs.size:
+                self.flat_now = flat[-1]
+                self.flat_value_dps = np.array([float(prs[f][-1]) for f in _FIELDS[:3]])
             self._pending_rows, self._pending_stats = [], []
             self._q_rows = prs if self._q_rows is None else np.concatenate([self._q_rows, prs])
             self._q_ok = np.concatenate([self._q_ok, ok])
