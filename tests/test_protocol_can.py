@@ -272,7 +272,7 @@ def test_a_sample_logged_twice_is_taken_once_and_counted() -> None:
     """A bus logged twice, or a gateway that sends every frame again, gives each sample twice; a
     forged copy with other values came through too. An outside user's log: x constant +180 deg/h
     where the truth was -180, and a replay pushed 699 deg/h (rc36b H2). A copy is dropped and
-    counted in ``repeated``, in a live link and a log alike."""
+    counted in ``repeated`` (``conflicting`` when its values differ), in a live link and a log alike."""
     codec = CanCodec()
     samples = [can_sample(i) for i in range(6)]
     frames = [f for s in samples for f in codec.encode(s)]
@@ -280,7 +280,7 @@ def test_a_sample_logged_twice_is_taken_once_and_counted() -> None:
     frames += codec.encode(replace(samples[5], gyro_dps=(0.5, 0.0, 0.0)))  # a forged seq 5
     dec = codec.decoder()
     assert [m for f in frames for m in dec.feed(f)] == samples
-    assert dec.stats.repeated == 2 and dec.stats.seq_gaps == 0
+    assert dec.stats.repeated == 1 and dec.stats.conflicting == 1 and dec.stats.seq_gaps == 0
 
 
 def test_can_fd_frames_on_the_units_ids_are_foreign_never_samples() -> None:

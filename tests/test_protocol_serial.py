@@ -187,14 +187,16 @@ def test_hello_restarts_seq_so_a_new_session_is_not_a_gap() -> None:
 
 
 def test_a_sample_sent_twice_is_taken_once_and_counted() -> None:
-    """A copy of the previous sample (same seq) is dropped and counted in ``repeated``, whatever its
-    values: believed, a copy weighs its sample twice and a forged one is learnt (rc36b H2, on CAN)."""
+    """A copy of the previous sample (same seq) is dropped and counted in ``repeated``, or in
+    ``conflicting`` when its values differ: believed, a copy weighs its sample twice and a forged one
+    is learnt (rc36b H2, on CAN)."""
     dec = FrameDecoder()
     forged = replace(q_sample(1), gyro_dps=(0.5, 0.0, 0.0))
     out = dec.feed(b"".join(encode_frame(m) for m in [q_sample(0), q_sample(1), q_sample(1), forged,
                                                         q_sample(2)]))
     assert [m.seq for m in out] == [0, 1, 2] and out[1] == q_sample(1)
-    assert dec.stats.repeated == 2 and dec.stats.seq_gaps == 0 and dec.stats.frames == 3
+    assert dec.stats.repeated == 1 and dec.stats.conflicting == 1 and dec.stats.seq_gaps == 0
+    assert dec.stats.frames == 3
 
 
 def test_buffer_stays_bounded_under_endless_noise() -> None:

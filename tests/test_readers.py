@@ -502,3 +502,70 @@ def test_a_header_row_behind_a_hash_is_the_header(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.diff(log["t"]), 0.005, atol=1e-6)
     np.testing.assert_allclose(log["wx"], 0.01 * 180 / math.pi)
     np.testing.assert_allclose(log["ax"], 9.81 / G0)
+
+
+def test_rows_no_sensor_could_give_are_dropped_before_fit_and_analyze(
+        sim_cols: dict[str, np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The protocol's "no reading" temperature (-327.68 degC) gave an x constant of +271 deg/h where
+    the truth was -180 in an outside user's CAN log; one temperature of 1e308 ended `analyze` in a
+    LinAlgError traceback; one rate of 1e300 deg/s ended `fit --method lms --all-samples` in an
+    OverflowError, and refused a still fit as having "no still period" (rc36b H1, H5, H6, M4). Such
+    rows are dropped and counted, as the daemon drops them (readers/plausible.py)."""
+    terms = ["--terms", "1", "gx", "gy", "gz", "temp"]
+    clean = tmp_path / "clean.csv"
+    write_log(clean, sim_cols)
+    ref, _ = _fit([str(clean), *terms], capsys)
+    cols = {k: v.copy() for k, v in sim_cols.items()}
+    cols["temp"][500:600] = -327.68  # a sensor with no reading for 1 s
+    cols["temp"][3000] = 1e308
+    cols["wx"][4000] = 1e300
+    cols["wy"][4100] = 5000.0  # beyond the +-2147.48 deg/s the wire carries
+    bad = tmp_path / "bad.csv"
+    write_log(bad, cols)
+    res, _ = _fit([str(bad), *terms], capsys)
+    assert res["skipped"]["implausible_temperature"] == 101 and res["skipped"]["out_of_range"] == 2
+    for ax in ("x", "y", "z"):  # the same fit as the clean log's, within its own uncertainty
+        got, want, sig = (np.array(r[ax], dtype=float) for r in (res["coefficients"], ref["coefficients"],
+                                                                ref["uncertainty"]))
+        assert np.all(np.abs(got - want) < 3 * sig + 1e-9), (ax, got, want, sig)
+    assert main(["fit", str(bad), "--all-samples", "--method", "lms"]) == 0
+    assert main(["analyze", str(bad), "--json", str(tmp_path / "a.json")]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_log_that_is_not_utf8_is_one_line_naming_the_line_and_the_fix(
+        dps_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A Latin-1 degree sign in a comment ended in a UnicodeDecodeError traceback (rc36b H4)."""
+    text = dps_log.read_bytes().split(b"\n")
+    path = tmp_path / "latin1.csv"
+    path.write_bytes(b"\n".join([text[0], "# sensor: Temperatur in \u00b0C".encode("latin-1"), *text[1:]]))
+    for cmd in (["fit", str(path)], ["replay", str(path)]):
+        assert main(cmd) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and "latin1.csv: not UTF-8 text at line 2" in err, err
+        assert "save it as UTF-8" in err
+
+
+def test_a_can_log_with_a_sample_sent_twice_with_other_values_uses_neither_copy(tmp_path: Path) -> None:
+    """Forged copies (+0.5 deg/s on x) sent just before the unit's own samples, on its ids: the first
+    copy was believed (x constant +273 deg/h where the truth was -180: rc36b H2). Which copy is the
+    unit's cannot be told, so a log reader drops both and counts them."""
+    import can
+
+    from gyrocal.protocol.can_codec import CanCodec
+
+    codec = CanCodec()
+    frames = list(codec.encode(Hello(77, "1.2.3", 5, 100)))
+    for s in _samples(200):
+        if s.seq % 10 == 5:  # a forged copy first
+            forged = Sample(s.seq, s.t_s, (0.51, 0.02, 0.03), s.accel_g, s.temp_c)
+            frames += codec.encode(forged)[-3:]
+        frames += codec.encode(s)
+    path = tmp_path / "forged.asc"
+    with can.Logger(str(path)) as out:
+        for i, f in enumerate(frames):
+            f.timestamp = 1000.0 + i * 1e-4
+            out(f)
+    log = read_any(path)
+    assert log.dropped["conflicting"] == 20 and log.dropped["conflicting_first"] == 20
+    assert len(log) == 180 and np.all(log["wx"] == 0.01)

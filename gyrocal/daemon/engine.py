@@ -62,6 +62,7 @@ from gyrocal.drivers import open_link
 from gyrocal.errors import GyrocalError
 from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
+from gyrocal.readers.plausible import ACCEL_MAX_G, GYRO_MAX_DPS
 
 log = logging.getLogger("gyrocal.engine")
 _COUNTS = re.compile(r"\d+(\.\d+)?")
@@ -98,7 +99,7 @@ class Reply:
 
 
 REJECTIONS = ("crc_errors", "oversize", "length_errors", "garbage_bytes", "unknown_types", "incomplete",
-              "bad_values", "implausible", "repeated")
+              "bad_values", "implausible", "repeated", "conflicting")
 """The link's counters of what it dropped (DecoderStats): summed up in one line a minute."""
 
 
@@ -141,6 +142,7 @@ class Engine(CommandsMixin):
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
+        self.dropped_out_of_range = 0  # samples beyond readers/plausible.py's GYRO_MAX_DPS or ACCEL_MAX_G
         self.temp_check = TemperatureCheck()  # daemon/tempcheck.py: temperatures no sensor reads
         self._temp_blind_since: float | None = None  # every sample since then dropped for its temperature
         self.sensor_check = SensorCheck()  # daemon/sensorcheck.py: a stuck gyro, an accelerometer not at 1 g
@@ -696,6 +698,16 @@ class Engine(CommandsMixin):
             block = block[finite]
             if block.size == 0:
                 return
+        # beyond what the wire carries (a replayed CSV's 1e300 deg/s changed its first push: rc36b M4)
+        inside = np.ones(block.size, dtype=bool)
+        for fields, limit in ((("wx", "wy", "wz"), GYRO_MAX_DPS), (("ax", "ay", "az"), ACCEL_MAX_G)):
+            for f in fields:
+                inside &= np.abs(block[f]) <= limit
+        if not inside.all():
+            self.dropped_out_of_range += int((~inside).sum())
+            block = block[inside]
+            if block.size == 0:
+                return
         # the unit speaks, whatever its temperature sensor reads: a dead one made it "silent"
         self._last_sample_at = now
         if self._silent:
@@ -916,6 +928,7 @@ class Engine(CommandsMixin):
             self._silent = silent
         status.update({"pid": os.getpid(), "uptime_s": round(now - self.started, 1), "link": link_stats,
                        "ring": ring, "dropped_nonfinite": self.dropped_nonfinite,
+                       "dropped_out_of_range": self.dropped_out_of_range,
                        "dropped_temperature": {"out_of_range": self.temp_check.out_of_range,
                                                "spikes": self.temp_check.spikes},
                        "liveness": {"sample_age_s": None if age is None else round(age, 3),

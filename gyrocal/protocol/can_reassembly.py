@@ -34,6 +34,7 @@ from gyrocal.protocol.messages import (
     HelloRequest,
     NakReason,
     Sample,
+    SampleConflict,
     coeff_set_crc,
 )
 from gyrocal.protocol.stats import DecoderStats
@@ -107,6 +108,7 @@ class CanDecoder:
             codec = CanCodec(node_id=node_id)
         self.node_id = codec.node_id
         self.stats = DecoderStats()
+        self.mark_conflicts = False  # a log reader's: yield SampleConflict for a conflicting copy
         self._by_id: dict[int, tuple[Any, Any, int]] = {
             codec.ids[name]: (getattr(self, f"_on_{name.lower()}"), _raw_decoder(codec.by_name[name]),
                               codec.by_name[name].length)
@@ -121,6 +123,7 @@ class CanDecoder:
         self._anchor: tuple[int, int] | None = None
         self._last_seq: int | None = None
         self._last_t_us = 0
+        self._last_values: tuple[int, ...] = ()
         self._dt_us = 0
         self._rejects = 0
         self._hello: dict[str, int] | None = None
@@ -163,11 +166,14 @@ class CanDecoder:
             return None
         return self._last_seq, self._last_t_us, self._dt_us
 
-    def advance_samples(self, last_seq: int, last_t_us: int, dt_us: int, parts: int, anchors: int) -> None:
+    def advance_samples(self, last_seq: int, last_t_us: int, dt_us: int, parts: int, anchors: int,
+                        last_values: tuple[int, ...] = ()) -> None:
         """Take the state ``feed`` would have after a bulk decoder decoded, from ``sample_state``,
         consecutive in-order samples: ``parts`` SAMPLE_A/B/C frames and ``anchors`` SAMPLE_TIME
-        frames (each 8 bytes, each anchor used by the sample after it)."""
+        frames (each 8 bytes, each anchor used by the sample after it); ``last_values``: the last
+        sample's raw gx, gy, gz, ax, ay, az, temp and time [us], as ``_complete`` keeps them."""
         self._last_seq, self._last_t_us, self._dt_us = last_seq, last_t_us, dt_us
+        self._last_values = last_values
         self._rejects = 0
         self._tick += parts
         self.stats.frames += parts + anchors
@@ -259,9 +265,15 @@ class CanDecoder:
                 st.resyncs += 1
             return []
         self._rejects = 0
+        values = (gx, gy, gz, ax, ay, az, temp, t_us)
         if last is not None and delta == 0:
-            st.repeated += 1  # the previous sample again (a copy, or another sender on our ids): never twice
-            return []
+            # the previous sample again: a copy is never a second sample, and one with other values is
+            # another sender on our ids
+            if values == self._last_values:
+                st.repeated += 1
+                return []
+            st.conflicting += 1
+            return [SampleConflict(seq)] if self.mark_conflicts else []
         if last is not None and delta != 1:
             st.seq_gaps += 1
             if delta > 1:
@@ -271,6 +283,7 @@ class CanDecoder:
         if last is None or delta > 0:  # a late older sample is passed on but does not move the state
             self._last_seq = seq
             self._last_t_us = t_us
+            self._last_values = values
         return [Sample(seq, t_us / US_PER_S, (gx / GYRO_PER_DPS, gy / GYRO_PER_DPS, gz / GYRO_PER_DPS),
                        (ax / ACCEL_PER_G_CAN, ay / ACCEL_PER_G_CAN, az / ACCEL_PER_G_CAN), temp / TEMP_PER_C)]
 

@@ -66,6 +66,15 @@ SEQ_MODULO = 1 << 32
 
 
 @dataclass(frozen=True, slots=True)
+class SampleConflict:
+    """Not on the wire: a log reader's decoder says that a sample came again with other values
+    (another sender on the unit's ids). The copy before it is no more the unit's than this one, so a
+    reader drops both (readers/stream.py); the live link never asks for these."""
+
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
 class Sample:
     """One IMU sample as the unit sends it (compensated output once a set is applied).
 

@@ -36,6 +36,7 @@ from gyrocal.protocol.messages import (
     HelloRequest,
     NakReason,
     Sample,
+    SampleConflict,
     check_int,
     coeff_set_bytes,
     parse_coeff_set,
@@ -212,6 +213,8 @@ class FrameDecoder:
         self.stats = DecoderStats()
         self._buf = bytearray()
         self._last_seq: int | None = None
+        self._last_sample: object = None  # the last sample yielded, to tell a copy from a conflict
+        self.mark_conflicts = False  # a log reader's: yield SampleConflict for a conflicting copy
         self._locked = False
 
     def reset(self) -> None:
@@ -286,9 +289,15 @@ class FrameDecoder:
                 if typ == T_SAMPLE:
                     last = self._last_seq
                     seq = msg.seq  # type: ignore[attr-defined]
-                    if seq == last:
-                        st.repeated += 1  # the previous sample again: a copy is not a second sample
+                    if seq == last:  # the previous sample again: a copy is not a second sample, and
+                        if msg == self._last_sample:  # one with other values is another sender
+                            st.repeated += 1
+                        else:
+                            st.conflicting += 1
+                            if self.mark_conflicts:
+                                out.append(SampleConflict(seq))
                         continue
+                    self._last_sample = msg
                     if last is not None and seq != (last + 1) & 0xFFFFFFFF:
                         st.seq_gaps += 1
                         missing = (seq - last - 1) & 0xFFFFFFFF

@@ -22,10 +22,11 @@ class DecoderStats:
     foreign_frames: CAN frames of other nodes or other protocols on a shared bus (ignored, not errors).
     bad_values: coefficient sets under a valid CRC that hold NaN or Inf (dropped).
     implausible: CAN samples whose time does not follow from their sequence number (dropped).
-    repeated: samples whose seq is the previous sample's (a bus logged twice, a gateway that sends a
-        frame again): dropped, since a copy believed weighs its sample twice, and a forged one with
-        other values was learnt (an outside user's CAN log: x constant +180 deg/h where the truth
-        was -180).
+    repeated: samples whose seq is the previous sample's, with the same values (a bus logged twice, a
+        gateway that sends a frame again): dropped, since a copy believed weighs its sample twice.
+    conflicting: the same, with other values: another sender on the unit's ids. The copy that came
+        second is dropped; which one is the unit's cannot be told (an outside user's CAN log whose
+        forged copies came first: x constant +180 deg/h where the truth was -180, with a count).
     """
 
     frames: int = 0
@@ -44,6 +45,7 @@ class DecoderStats:
     bad_values: int = 0
     implausible: int = 0
     repeated: int = 0
+    conflicting: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON status output."""
@@ -52,4 +54,5 @@ class DecoderStats:
     def errors(self) -> int:
         """All rejected frames and parts (excludes gaps, which the link may cause without corruption)."""
         return (self.crc_errors + self.oversize + self.length_errors + self.unknown_types + self.incomplete
-                + self.bad_values + self.implausible + self.repeated)
+                + self.bad_values + self.implausible + self.repeated
+                + self.conflicting)

@@ -19,6 +19,7 @@ Each reader converts to deg/s, g, degC and s, and counts what it dropped, by rea
 from __future__ import annotations
 
 import argparse
+import codecs
 import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,12 +101,39 @@ def read_any(path: str | Path, kind: str | None = None, options: ReadOptions | N
     if kind not in READERS:
         raise ConfigError(f"--format {kind!r} unknown; choose one of {', '.join(READERS)}")
     module, func = READERS[kind]
-    log: LogData = getattr(importlib.import_module(module), func)(str(path), options or ReadOptions())
+    try:
+        log: LogData = getattr(importlib.import_module(module), func)(str(path), options or ReadOptions())
+    except UnicodeDecodeError as err:  # it ended in a traceback (a Latin-1 "degC" in a comment: rc36b H4)
+        raise LogFormatError(not_utf8(path, err) or str(err)) from None
     previous = log.metadata.get("format")
     if previous and previous != kind:  # a converted log keeps where it came from
         log.metadata["source_format"] = previous
     log.metadata["format"] = kind
-    return log
+    from gyrocal.readers.plausible import drop_implausible
+
+    return drop_implausible(log)
+
+
+def not_utf8(path: str | Path, err: UnicodeDecodeError | None = None) -> str | None:
+    """For a text log that is not UTF-8, one line: the file, the line and byte, and the fix; None
+    when it is UTF-8. Read in 16 MB pieces: a streamed log is never read whole."""
+    dec = codecs.getincrementaldecoder("utf-8")()
+    offset, lines = 0, 1
+    try:
+        with Path(path).open("rb") as fh:
+            while piece := fh.read(1 << 24):
+                try:
+                    dec.decode(piece)
+                except UnicodeDecodeError as bad:
+                    at = max(bad.start - len(dec.getstate()[0]), 0)  # bytes held back from before
+                    line = lines + piece.count(b"\n", 0, at)
+                    return (f"{path}: not UTF-8 text at line {line} (byte {offset + at}: 0x{piece[at]:02x}): "
+                            f"{bad.reason}; save it as UTF-8 (e.g. iconv -f latin1 -t utf-8), a degree "
+                            "sign in a comment too")
+                offset, lines = offset + len(piece), lines + piece.count(b"\n")
+    except OSError:
+        pass
+    return None if err is None else f"{path}: not UTF-8 text: {err.reason}; save it as UTF-8"
 
 
 def require(module: str, what: str) -> ModuleType:

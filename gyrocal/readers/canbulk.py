@@ -239,6 +239,9 @@ class BulkCanDecoder:
                                 ("az", pc, sc["ACCEL_Z"]), ("temp", pa, sa["TEMP"])):
             block[col] = sig.raw(frame[:m]) / sig.per_unit
         anchors = int(anch[:m].sum())
-        self.decoder.advance_samples(last_seq + m, int(t[m - 1]), int(step[m - 1]), 3 * m, anchors)
+        last = tuple(int(sig.raw(frame[m - 1:m])[0]) for frame, sig in (
+            (pa, sa["GYRO_X"]), (pb, sb["GYRO_Y"]), (pc, sc["GYRO_Z"]), (pb, sb["ACCEL_X"]),
+            (pb, sb["ACCEL_Y"]), (pc, sc["ACCEL_Z"]), (pa, sa["TEMP"]))) + (int(t[m - 1]),)
+        self.decoder.advance_samples(last_seq + m, int(t[m - 1]), int(step[m - 1]), 3 * m, anchors, last)
         self.bulk_samples += m
         return m, block

@@ -141,6 +141,7 @@ def read_canlog(path: str, options: ReadOptions, fast: bool = True) -> LogData:
     """A python-can log's SAMPLEs as log columns; HELLOs split sessions. ``fast=False`` reads a
     .blf with can.LogReader frame by frame (the reference the fast path is tested against)."""
     rec = CanRecording(path, options.dbc, fast, options.instance)
+    rec.decoder.mark_conflicts = True  # both copies of a conflicting sample are dropped (stream.py)
     log = messages_to_log(rec.messages(), path)
     for k, v in rec.counts.items():
         if v and (k in ("error_frames", "truncated_bytes") or k.startswith("blf_")):

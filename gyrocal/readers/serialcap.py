@@ -42,6 +42,7 @@ class SerialRecording:
 def read_serial_capture(path: str, options: ReadOptions) -> LogData:
     """A serial byte capture's SAMPLEs as log columns; HELLOs split sessions."""
     rec = SerialRecording(path)
+    rec.decoder.mark_conflicts = True  # both copies of a conflicting sample are dropped (stream.py)
     log = messages_to_log(rec.messages(), path)
     for k, v in rec.stats().items():
         if k not in ("frames", "bytes", "foreign_frames") and v:

@@ -21,7 +21,7 @@ import numpy as np
 
 from gyrocal.logformat import LogData
 from gyrocal.model.terms import T_ORIGIN_KEY
-from gyrocal.protocol.messages import CoeffReport, Hello, Sample
+from gyrocal.protocol.messages import CoeffReport, Hello, Sample, SampleConflict
 
 FIELDS = ("t", "wx", "wy", "wz", "ax", "ay", "az", "temp", "session")
 SEQ_BACK = 1000
@@ -39,6 +39,7 @@ def messages_to_log(messages: Iterable[Any], source: str, stats: Mapping[str, in
     last_seq: int | None = None
     in_session = 0
     nonfinite = 0
+    conflicting_first = 0
     for m in messages:
         if isinstance(m, np.ndarray):  # a bulk-decoded block: in-order seq, finite values
             if not m.size:
@@ -74,6 +75,16 @@ def messages_to_log(messages: Iterable[Any], source: str, stats: Mapping[str, in
             if len(rows) >= 65536:
                 chunks.append(np.asarray(rows, dtype=np.float64))
                 rows = []
+        elif type(m) is SampleConflict:
+            # the sample before came again with other values: neither copy is known to be the unit's
+            # (a forged copy sent first was believed: an outside user's CAN log, x constant +273 deg/h
+            # where the truth was -180); the decoder counted the second, this drops the first
+            if rows:
+                rows.pop()
+                conflicting_first += 1
+            elif chunks and chunks[-1].shape[0]:
+                chunks[-1] = chunks[-1][:-1]
+                conflicting_first += 1
         elif isinstance(m, Hello):
             if (m.serial, m.boot_count) != unit:
                 if session < 0:
@@ -100,10 +111,13 @@ def messages_to_log(messages: Iterable[Any], source: str, stats: Mapping[str, in
     dropped: dict[str, int] = {}
     if nonfinite:
         dropped["nonfinite"] = nonfinite
+    if conflicting_first:
+        dropped["conflicting_first"] = conflicting_first
     for k, v in (stats or {}).items():
         if k not in ("frames", "bytes", "foreign_frames") and v:
             dropped[k] = int(v)
     for k, v in (extra_dropped or {}).items():
         if v:
             dropped[k] = int(v)
-    return LogData(columns, meta, [], source, dropped, data_rows=int(table.shape[0]) + nonfinite)
+    return LogData(columns, meta, [], source, dropped,
+                   data_rows=int(table.shape[0]) + nonfinite + conflicting_first)

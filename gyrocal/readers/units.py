@@ -113,6 +113,16 @@ def gyro_units_warning(log: object) -> str | None:
     sub = {k: np.asarray(v[:RAD_CHECK_ROWS], dtype=np.float64) for k, v in cols.items()
            if k in ("t", "wx", "wy", "wz", "ax", "ay", "az", "session")}
     sub.setdefault("session", np.zeros(sub["t"].size))
+    # rows no sensor gives are dropped after reading (readers/plausible.py); here, one rate of 1e300
+    # deg/s overflowed the still detector's sums and left the check nothing (rc36b M4)
+    from gyrocal.readers.plausible import ACCEL_MAX_G, GYRO_MAX_DPS
+
+    with np.errstate(invalid="ignore"):
+        ok = np.ones(sub["t"].size, dtype=bool)
+        for k in ("wx", "wy", "wz", "ax", "ay", "az"):
+            ok &= np.abs(sub[k]) <= (GYRO_MAX_DPS if k[0] == "w" else ACCEL_MAX_G)
+    if not ok.all():
+        sub = {k: v[ok] for k, v in sub.items()}
     t, session = sub["t"], sub["session"]
     if not np.all(np.isfinite(t)):
         return None

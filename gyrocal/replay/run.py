@@ -122,9 +122,11 @@ class Replay:
         duration = float(self.clock.now)
         return {
             "recording": self.recording.path, "format": self.recording.kind,
-            "samples": samples, "dropped": {**self.recording.dropped(),
-                                            **({"nonfinite": eng.dropped_nonfinite} if eng.dropped_nonfinite
-                                               else {})},
+            # what the engine dropped too (out of range, temperatures no sensor reads): they were
+            # missing from "dropped" (rc36b L4)
+            "samples": samples, "dropped": {**self.recording.dropped(), **{k: v for k, v in (
+                ("nonfinite", eng.dropped_nonfinite), ("out_of_range", eng.dropped_out_of_range),
+                ("implausible_temperature", eng.temp_check.dropped)) if v}},
             "samples_before_hello": eng.samples_before_hello, "sessions_started": eng.sessions_started,
             "hello_synthesized": link.unit.synthesized_hello,
             "replayed_s": round(duration, 3), "wall_s": round(self.wall_s, 3),
@@ -137,6 +139,7 @@ class Replay:
             # samples the still detector had not decided when its session ended (its look-ahead, a few
             # tenths of a second per session): the sessions' counts are short by these, nothing is lost
             "not_decided": max(0, samples - eng.samples_before_hello - eng.dropped_nonfinite
+                               - eng.dropped_out_of_range - eng.temp_check.dropped
                                - sum(int(x["samples"]) for x in sessions)),
         }
 

@@ -127,8 +127,11 @@ def open_recording(path: str, kind: str | None = None, options: ReadOptions | No
         def make() -> Any:
             return SerialRecording(path)
     elif kind == "csv":  # block by block: a long log never sits in memory whole
+        from gyrocal.readers import not_utf8
         from gyrocal.readers.csvstream import CsvStream
 
+        if (bad := not_utf8(path)) is not None:  # streamed, it would fail mid-replay (rc36b H4)
+            raise LogFormatError(bad)
         stream = CsvStream(path, options.columns or None, options.units or None)
         return Recording(path, kind, stream=stream, first_report=applied_from_metadata(stream.metadata, path))
     else:
