@@ -12,10 +12,11 @@ learning from such values and pushing them, without a word:
 
 What is checked, and where:
 
-- A gyro axis that reads one value through a whole still window is stuck or railed: a live gyro's
-  noise spans thousands of its 1e-6 deg/s counts. The still rule leaves such windows out
-  (model/still.py, ``GYRO_CHANGES``), so nothing is learnt or monitored from them; this check says
-  which axis and what it reads.
+- A gyro axis that shows no noise through a whole still window (one value, or a spread of its
+  sample-to-sample differences below 1e-5 deg/s, which a unit's own compensation of a stuck sensor
+  gives) is stuck or railed: a live gyro's noise spans many of its 1e-6 deg/s counts. The still rule
+  leaves such windows out (model/still.py, ``flat_axes``), so nothing is learnt or monitored from
+  them; this check says which axis and what it reads.
 - A sample the still rule found at rest whose accelerometer magnitude is outside
   1 +- ``ACCEL_TOL_G`` g is refused as still here: specific force at rest is 1 g, and a cheap MEMS
   part's scale error (a few %) and bias (up to 0.1 g) stay well inside.
@@ -81,8 +82,8 @@ class SensorCheck:
         parts = []
         if self.flat_axes:
             reads = ", ".join(f"{a} {v:.6g} deg/s" for a, v in self.flat_value_dps.items())
-            parts.append(f"gyro {self.flat_axes} reads one value ({reads}) with no noise: a stuck or "
-                         "railed sensor; no sample of it is learnt or monitored")
+            parts.append(f"gyro {self.flat_axes} shows no noise ({reads}): a stuck or railed sensor; "
+                         "no sample of it is learnt or monitored")
         if accel_bad and self.accel_norm_g is not None:
             parts.append(f"the accelerometer reads {self.accel_norm_g:.3g} g at rest, not 1 g (dead, "
                          "saturated, or not in g): its gravity is not believed, nothing is learnt at rest")

@@ -38,9 +38,10 @@ class StillRule:
     max(``band_k`` x quiet, ``band_floor_dps``) of the still median (a constant-rate turn is not
     still), and every accelerometer axis has a rolling std below ``k_std`` times its quiet level
     and no axis turns within the window (``k_turn``: gravity on the accelerometer, the rate on the
-    gyro), and no gyro axis reads one value through the whole window (``GYRO_CHANGES``: a stuck or
-    railed sensor; a live gyro's noise spans thousands of its 1e-6 deg/s counts). Still stretches
-    then lose ``margin_s`` at each end and are dropped when shorter than ``min_run_s``. A unit whose
+    gyro), and no gyro axis is flat through the whole window (``flat_axes``: one value, or a noise
+    below FLAT_DPS: a stuck or railed sensor; a live gyro's noise spans many 1e-6 deg/s counts).
+    Still stretches then lose ``margin_s`` at each end and are dropped when shorter than
+    ``min_run_s``. A unit whose
     quiet level exceeds ``max_quiet_dps`` is never still: no gyro is that noisy at rest, so it has
     not been at rest yet; nor is a sample whose rolling gyro mean exceeds ``max_rate_dps`` along
     gravity (the rolling accelerometer mean; on every axis when there is none).
@@ -105,8 +106,15 @@ ACCEL_MEAN = slice(27, 30)
 GYRO_CHANGES = slice(30, 33)
 STATS_COLUMNS = 33
 FLAT_MIN_WINDOW = 20
-"""Windows of fewer samples than this are never judged flat (``GYRO_CHANGES``): at 10-50 Hz a
+"""Windows of fewer samples than this are never judged flat (``flat_axes``): at 10-50 Hz a
 coarsely quantised quiet gyro may repeat one count for a whole short window."""
+FLAT_DPS = 1e-5
+"""A gyro axis whose sample-to-sample noise is below this [deg/s] in a window is judged flat
+(``flat_axes``), as is one whose value does not change at all. A stuck sensor behind a unit's own
+compensation is not one value: the unit subtracts its set's terms, whose accelerometer noise moves
+the output by about 1e-6 deg/s (a stuck x at 2.0 deg/s behind v7 had a drift alarm and four bias
+stages pushed: rc36a, live). The quietest live gyros are above 5e-5 deg/s per sample from 50 Hz up
+(a 0.0005 deg/sqrt(h) fibre gyro)."""
 
 
 def turn_noise(d1_std: np.ndarray, d2_std: np.ndarray, w: int) -> np.ndarray:
@@ -303,10 +311,10 @@ def _changes(d1: np.ndarray, w: int) -> np.ndarray:
     row's centred window of w samples [count], exactly (integer sums). A gyro axis that changes 0 times
     is stuck or railed: one at 2.0 deg/s with no noise was learnt as a 7,200 deg/h bias and pushed,
     and the record predicted 0.00002 deg/h left (an integrator's campaign, rc36a S1). Windows shorter
-    than FLAT_MIN_WINDOW give w (never flat)."""
+    than FLAT_MIN_WINDOW give NaN (not judged)."""
     n = d1.shape[0]
     if w < FLAT_MIN_WINDOW:
-        return np.full(d1.shape, float(w))
+        return np.full(d1.shape, np.nan)
     cs = np.zeros((n + 1, d1.shape[1]), dtype=np.int64)
     np.cumsum(d1 != 0, axis=0, out=cs[1:])
     i = np.arange(n)
@@ -326,6 +334,15 @@ def _slow(stats: np.ndarray, rule: StillRule) -> np.ndarray:
     return np.where(has_g, along < rule.max_rate_dps, np.all(np.abs(g) < rule.max_rate_dps, axis=1))
 
 
+def flat_axes(stats: np.ndarray) -> np.ndarray:
+    """Per row and gyro axis (N, 3): the axis is flat in the row's window, a stuck or railed sensor:
+    its value never changes, or its first differences spread less than FLAT_DPS times sqrt 2 (what
+    a noise of FLAT_DPS gives). Never in a window shorter than FLAT_MIN_WINDOW (its count is NaN)."""
+    changes = stats[:, GYRO_CHANGES]
+    judged = np.isfinite(changes)
+    return judged & ((changes <= 0) | (stats[:, GYRO_D1] < FLAT_DPS * np.sqrt(2.0)))
+
+
 def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
                  accel_quantum_g: np.ndarray | None = None) -> QuietLevels:
     """The quiet level from rolling statistics rows (samples, or a decimated history of them).
@@ -336,7 +353,7 @@ def quiet_levels(stats: np.ndarray, rule: StillRule, w: int,
     gives (``turn_noise``, from its differences, blind to a steady turn), floored like the spread: a
     quantised axis at white noise's 2 (quantum / 2) / sqrt(w).
     """
-    live = np.all(stats[:, GYRO_CHANGES] > 0, axis=1)
+    live = ~np.any(flat_axes(stats), axis=1)
     if np.any(live):  # a stuck axis's windows would make its quiet level 0 (status showed 1e-09 deg/s)
         stats = stats[live]
     cols = np.r_[GYRO_STD, ACCEL_STD, GYRO_D1, ACCEL_D1, GYRO_D2, ACCEL_D2]
@@ -367,7 +384,7 @@ def quiet_mask(stats: np.ndarray, lv: QuietLevels, rule: StillRule) -> np.ndarra
     ok &= np.all(stats[:, ACCEL_STD] < rule.k_std * lv.accel_g, axis=1)
     ok &= np.all(np.abs(stats[:, ACCEL_TURN]) < rule.k_turn * lv.turn_g, axis=1)
     ok &= np.all(np.abs(stats[:, GYRO_TURN]) < rule.k_turn * lv.turn_dps, axis=1)
-    ok &= np.all(stats[:, GYRO_CHANGES] > 0, axis=1)
+    ok &= ~np.any(flat_axes(stats), axis=1)
     if np.any(lv.gyro_dps > rule.max_quiet_dps):
         ok[:] = False
     return ok
@@ -524,7 +541,7 @@ class StreamingStill:
             st = np.vstack(self._pending_stats)
             ok = quiet_mask(st, self.levels, self.rule)
             prs = np.concatenate(self._pending_rows)
-            flat = st[:, GYRO_CHANGES] <= 0
+            flat = flat_axes(st)
             self.flat_rows += flat.sum(axis=0)
             if prs.size:
                 self.flat_now = flat[-1]
