@@ -569,3 +569,37 @@ def test_a_can_log_with_a_sample_sent_twice_with_other_values_uses_neither_copy(
     log = read_any(path)
     assert log.dropped["conflicting"] == 20 and log.dropped["conflicting_first"] == 20
     assert len(log) == 180 and np.all(log["wx"] == 0.01)
+
+
+def test_fit_uses_every_session_of_a_log_not_the_first_alone(
+        sim_cols: dict[str, np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Time restarts at each switch-on, and the estimator's time check dropped every session after the
+    first as time_backwards (17,166 of 19,000 rows of an outside user's log with a power cycle: rc36b
+    M2). Every session is fitted, with a warning that the constant is their mean."""
+    two = {k: np.concatenate([v, v]) for k, v in sim_cols.items()}
+    two["session"] = np.repeat([0.0, 1.0], len(sim_cols["t"]))
+    path = tmp_path / "two.csv"
+    write_log(path, two)
+    single = tmp_path / "one.csv"
+    write_log(single, sim_cols)
+    one, _ = _fit([str(single)], capsys)
+    res, err = _fit([str(path)], capsys)
+    assert res["skipped"].get("time_backwards", 0) == 0 and res["samples"] == 2 * one["samples"]
+    assert "2 sessions (switch-ons): every one is fitted" in err
+
+
+def test_lms_epochs_leave_out_the_pairs_the_guard_refuses() -> None:
+    """rc36b H6, in the estimator: a pair beyond the guard's max_rate_dps (counted out_of_range by
+    absorb) never reaches the seed's epochs: the weights are those of the pairs without it. One wx of
+    1e300 deg/s ended `fit --method lms --all-samples` in an OverflowError traceback."""
+    from gyrocal.model.methods import LMS
+
+    rng = np.random.default_rng(3)
+    phi = np.column_stack([np.ones(40), rng.uniform(-1, 1, 40)])
+    y = np.column_stack([0.01 + 0.002 * phi[:, 1], np.zeros(40), np.zeros(40)])
+    bad_phi, bad_y = np.vstack([phi, [1.0, 0.5]]), np.vstack([y, [2100.0, 0.0, 0.0]])
+    a, b = LMS(["1", "gx"], seed=1), LMS(["1", "gx"], seed=1)
+    assert a.absorb(bad_phi, bad_y) == 40 and a.counts["out_of_range"] == 1
+    a.train_seed(bad_phi, bad_y)
+    b.train_seed(phi, y)
+    np.testing.assert_array_equal(a.W, b.W)

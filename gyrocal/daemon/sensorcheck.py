@@ -47,7 +47,7 @@ class SensorCheck:
 
     accel_refused: int = 0
     accel_norm_g: float | None = None  # the last refused still sample's magnitude [g]
-    flat_axes: str = ""  # gyro axes that read one value at the newest row judged
+    flat_axes: str = ""  # gyro axes with no noise (stuck, railed) at the newest row judged
     flat_value_dps: dict[str, float] = field(default_factory=dict)
     fault: str | None = None
     _warned_at: dict[str, float] = field(default_factory=dict)

@@ -119,6 +119,15 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
     if len(data.phi) == 0:
         raise ConfigError(f"{log_path}: none of its {len(log)} rows lies in a still period; "
                           "add --all-samples to fit every sample")
+    sessions = int(np.unique(log["session"]).size) if log.has("session") else 1
+    # time restarts at each switch-on: the estimator's time check dropped every session after the
+    # first as time_backwards (17,166 of 19,000 rows of an outside user's CAN log with a power cycle:
+    # rc36b M2). Each reader keeps time in order within a session, so across several none is checked.
+    t_fit = data.t if sessions == 1 else None
+    if sessions > 1:
+        warnings.append(f"{sessions} sessions (switch-ons): every one is fitted, with one set of "
+                        "coefficients; the bias changes at each switch-on, so the constant is their "
+                        "mean (docs/logformat.md)")
     norm = Normaliser.from_data(spec, data.phi, data.y)
     kw: dict = {"normaliser": norm}
     if method == "rls":
@@ -127,17 +136,17 @@ def fit(log_path: str, method: str, terms: list[str], all_samples: bool = False,
         kw["seed"] = seed
     est = make_estimator(method, spec, **kw)
     if isinstance(est, LMS) and method == "lms":
-        est.absorb(data.phi, data.y, data.t)
+        est.absorb(data.phi, data.y, t_fit)
         pairs = (data.phi, data.y) if all_samples else data.segment_means()
         est.train_seed(*pairs)
     else:
-        est.update_many(data.phi, data.y, data.t)
+        est.update_many(data.phi, data.y, t_fit)
     coeffs, sigma, ident = est.coefficients, est.uncertainty, est.identifiability
     rms = est.residual_rms_dps
     kind, offset = ("kalman_posterior_1sigma" if method == "kf" else "ls_1sigma"), None
     if method in ("lms", "nlms"):
         ls = make_estimator("batch", spec, normaliser=norm)
-        ls.update_many(data.phi, data.y, data.t)
+        ls.update_many(data.phi, data.y, t_fit)
         d = coeffs - ls.coefficients
         with np.errstate(invalid="ignore", divide="ignore"):
             offset = np.where(np.isfinite(sigma), np.abs(d) / sigma, np.nan)
@@ -218,6 +227,9 @@ def main(args: argparse.Namespace) -> int:
     log = read_from_args(args.log, args)
     for w in log.warnings:
         print(f"gyrocal: warning: {w}", file=sys.stderr)
+    shown = len(log.warnings)
     res = fit(args.log, args.method, load_terms(args), args.all_samples, args.forgetting, args.seed, log=log)
+    for w in res["warnings"][shown:]:  # the fit's own (sessions, the set the unit held)
+        print(f"gyrocal: warning: {w}", file=sys.stderr)
     print(json.dumps(res) if args.json else format_table(res))
     return 0

@@ -93,10 +93,15 @@ class LMS(Estimator):
 
         W starts random in (-1, 1) (seeded), and each epoch presents every pair in order with eq. (7)
         at the epoch's alpha. Returns the MSE per epoch (normalised units). Only W changes: the
-        statistics for uncertainty and identifiability come from ``absorb``.
+        statistics for uncertainty and identifiability come from ``absorb``. Pairs that are not
+        finite or whose |y| exceeds the guard's ``max_rate_dps`` are left out, as ``absorb`` leaves them.
         """
         sch = schedule or SeedSchedule()
-        keep = np.isfinite(phi).all(axis=1) & np.isfinite(y).all(axis=1)
+        # the pairs ``absorb`` refused are refused here too: a gyro of 1e300 deg/s, counted out_of_range
+        # there, reached the epochs as an OverflowError (rc36b H6)
+        with np.errstate(invalid="ignore"):
+            keep = (np.isfinite(phi).all(axis=1) & np.isfinite(y).all(axis=1)
+                    & (np.abs(y) <= self.guard.max_rate_dps).all(axis=1))
         z = np.asarray(phi, dtype=np.float64)[keep] * self._a - self._c
         yn = np.asarray(y, dtype=np.float64)[keep]
         self.W = self.rng.uniform(-1.0, 1.0, self.W.shape) * self.norm.y_scale  # (-1, 1) normalised

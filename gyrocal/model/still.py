@@ -487,7 +487,7 @@ class StreamingStill:
         self._quantum = np.full(3, np.inf)  # smallest accel step seen per axis [g] (quantisation)
         self._prev: np.ndarray | None = None  # the row before the kept look-behind (differences)
         self._prev_d1: np.ndarray | None = None  # its first difference
-        self.flat_rows = np.zeros(3, dtype=np.int64)  # rows judged whose gyro axis read one value
+        self.flat_rows = np.zeros(3, dtype=np.int64)  # rows judged whose gyro axis had no noise (flat_axes)
         self.flat_now = np.zeros(3, dtype=bool)  # ... per axis, at the newest row judged
         self.flat_value_dps = np.zeros(3)  # the newest row judged's gyro reading [deg/s]
 
