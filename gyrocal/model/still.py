@@ -41,10 +41,10 @@ class StillRule:
     gyro), and no gyro axis is flat through the whole window (``flat_axes``: one value, or a noise
     below FLAT_DPS: a stuck or railed sensor; a live gyro's noise spans many 1e-6 deg/s counts).
     Still stretches then lose ``margin_s`` at each end and are dropped when shorter than
-    ``min_run_s``. A unit whose
-    quiet level exceeds ``max_quiet_dps`` is never still: no gyro is that noisy at rest, so it has
-    not been at rest yet; nor is a sample whose rolling gyro mean exceeds ``max_rate_dps`` along
-    gravity (the rolling accelerometer mean; on every axis when there is none).
+    ``min_run_s``. A unit whose quiet level exceeds ``max_quiet_dps`` is never still: no gyro is
+    that noisy at rest, so it has not been at rest yet; nor is a sample whose rolling gyro mean
+    exceeds ``max_rate_dps`` along gravity (the rolling accelerometer mean; on every axis when there
+    is none).
 
     A rest therefore yields still samples only when it lasts at least window + 2 margins + min_run
     (1.1 s with the defaults). The margins and minimum length are what hand-held real data needs
