@@ -62,7 +62,7 @@ from gyrocal.drivers import open_link
 from gyrocal.errors import GyrocalError
 from gyrocal.protocol import termsets
 from gyrocal.protocol.messages import SEQ_MODULO, Hello, HelloRequest
-from gyrocal.readers.plausible import ACCEL_MAX_G, GYRO_MAX_DPS
+from gyrocal.readers.plausible import within_range
 
 log = logging.getLogger("gyrocal.engine")
 _COUNTS = re.compile(r"\d+(\.\d+)?")
@@ -142,7 +142,7 @@ class Engine(CommandsMixin):
         self.status: dict[str, Any] = {"state": "STARTING"}
         self.started = clock()
         self.dropped_nonfinite = 0
-        self.dropped_out_of_range = 0  # samples beyond readers/plausible.py's GYRO_MAX_DPS or ACCEL_MAX_G
+        self.dropped_out_of_range = 0  # samples beyond what the wire carries (readers/plausible.py)
         self.temp_check = TemperatureCheck()  # daemon/tempcheck.py: temperatures no sensor reads
         self._temp_blind_since: float | None = None  # every sample since then dropped for its temperature
         self.sensor_check = SensorCheck()  # daemon/sensorcheck.py: a stuck gyro, an accelerometer not at 1 g
@@ -699,10 +699,7 @@ class Engine(CommandsMixin):
             if block.size == 0:
                 return
         # beyond what the wire carries (a replayed CSV's 1e300 deg/s changed its first push: rc36b M4)
-        inside = np.ones(block.size, dtype=bool)
-        for fields, limit in ((("wx", "wy", "wz"), GYRO_MAX_DPS), (("ax", "ay", "az"), ACCEL_MAX_G)):
-            for f in fields:
-                inside &= np.abs(block[f]) <= limit
+        inside = within_range(block)
         if not inside.all():
             self.dropped_out_of_range += int((~inside).sum())
             block = block[inside]

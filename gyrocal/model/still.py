@@ -227,6 +227,12 @@ def sample_rate_hz(t: np.ndarray, session: np.ndarray) -> float:
     return float(count / float(np.sum(kept)))
 
 
+def _window_bounds(n: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end (exclusive) of each of n rows' centred window of w samples, cut at the edges."""
+    i = np.arange(n)
+    return np.clip(i - w // 2, 0, n), np.clip(i + w - w // 2, 0, n)
+
+
 def _rolling(x: np.ndarray, w: int, halves: bool = False) -> tuple[np.ndarray, ...]:
     """Centred rolling mean and std of the columns of x (N, K) over w samples (edges: shorter windows),
     and with ``halves`` the mean of each window's second half minus its first's (N, K): a slope
@@ -246,9 +252,7 @@ def _rolling(x: np.ndarray, w: int, halves: bool = False) -> tuple[np.ndarray, .
     cs2 = np.empty_like(cs)
     cs2[0] = 0.0
     np.cumsum(x * x, axis=0, out=cs2[1:])
-    i = np.arange(n)
-    lo = np.clip(i - w // 2, 0, n)
-    hi = np.clip(i + w - w // 2, 0, n)
+    lo, hi = _window_bounds(n, w)
     cnt = (hi - lo)[:, None]
     mean = (cs[hi] - cs[lo]) / cnt
     var = np.maximum((cs2[hi] - cs2[lo]) / cnt - mean**2, 0.0)
@@ -317,9 +321,7 @@ def _changes(d1: np.ndarray, w: int) -> np.ndarray:
         return np.full(d1.shape, np.nan)
     cs = np.zeros((n + 1, d1.shape[1]), dtype=np.int64)
     np.cumsum(d1 != 0, axis=0, out=cs[1:])
-    i = np.arange(n)
-    lo = np.clip(i - w // 2, 0, n)
-    hi = np.clip(i + w - w // 2, 0, n)
+    lo, hi = _window_bounds(n, w)
     # the changes between the window's own samples: differences lo+1 .. hi-1
     return (cs[hi] - cs[np.minimum(lo + 1, hi)]).astype(float)
 

@@ -19,6 +19,8 @@ Units: deg/s, g, degC, s.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from gyrocal.daemon.tempcheck import TemperatureCheck
@@ -33,15 +35,23 @@ ACCEL_MAX_G = 1000.0
 """A specific force [g] beyond any IMU accelerometer's range (high-g shock parts stop at 200-500 g)."""
 
 
+def within_range(cols: Mapping[str, np.ndarray] | np.ndarray) -> np.ndarray:
+    """(N,) bool: no gyro rate beyond GYRO_MAX_DPS [deg/s] and no specific force beyond ACCEL_MAX_G
+    [g] on any axis, of log columns or the daemon's sample rows (fields wx..az). A NaN is not judged
+    here: every reader and the engine count it as nonfinite."""
+    ok = np.ones(len(cols["wx"]), dtype=bool)
+    with np.errstate(invalid="ignore"):
+        for f in ("wx", "wy", "wz", "ax", "ay", "az"):
+            ok &= ~(np.abs(cols[f]) > (GYRO_MAX_DPS if f[0] == "w" else ACCEL_MAX_G))
+    return ok
+
+
 def drop_implausible(log: LogData) -> LogData:
     """``log`` without the rows no sensor could give, counted in ``log.dropped`` by reason."""
     n = len(log)
     if n == 0:
         return log
-    with np.errstate(invalid="ignore"):
-        gyro_ok = np.all(~(np.abs(log.gyro_dps) > GYRO_MAX_DPS), axis=1)
-        accel_ok = np.all(~(np.abs(log.accel_g) > ACCEL_MAX_G), axis=1)
-    range_ok = gyro_ok & accel_ok
+    range_ok = within_range(log.columns)
     temp_ok = np.ones(n, dtype=bool)
     if log.has("temp"):
         temp = np.asarray(log["temp"], dtype=np.float64)

@@ -115,12 +115,9 @@ def gyro_units_warning(log: object) -> str | None:
     sub.setdefault("session", np.zeros(sub["t"].size))
     # rows no sensor gives are dropped after reading (readers/plausible.py); here, one rate of 1e300
     # deg/s overflowed the still detector's sums and left the check nothing (rc36b M4)
-    from gyrocal.readers.plausible import ACCEL_MAX_G, GYRO_MAX_DPS
+    from gyrocal.readers.plausible import within_range
 
-    with np.errstate(invalid="ignore"):
-        ok = np.ones(sub["t"].size, dtype=bool)
-        for k in ("wx", "wy", "wz", "ax", "ay", "az"):
-            ok &= np.abs(sub[k]) <= (GYRO_MAX_DPS if k[0] == "w" else ACCEL_MAX_G)
+    ok = within_range(sub)
     if not ok.all():
         sub = {k: v[ok] for k, v in sub.items()}
     t, session = sub["t"], sub["session"]
